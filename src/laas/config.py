@@ -1,0 +1,77 @@
+"""Engine configuration: validated once, then passed around as a frozen object."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["EngineConfig", "Mode"]
+
+Mode = Literal["default", "paper"]
+"""`paper`: the joint-hypothesis discrete Bayes filter of the paper (section IV-D).
+`default`: the cooperative estimate of the common GNSS error with a scalable lane search."""
+
+Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+Probability = Annotated[float, Field(ge=0.0, le=0.5, allow_inf_nan=False)]
+
+
+class EngineConfig(BaseModel):
+    """Everything the positioning engine can be tuned by.
+
+    The sensor sigmas describe the receivers (the paper tunes its Kalman filter
+    "by approximating the sensor accuracy"); the rest are model constants.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    mode: Mode = "default"
+    kalman: bool = Field(default=True, description="smooth each track with a Kalman filter")
+
+    # Sensors (1-sigma).
+    sigma_pos: Positive = Field(default=1.0, description="receiver position noise per axis, m")
+    sigma_vel: Positive = Field(default=0.25, description="receiver speed noise, m/s")
+    sigma_heading: Positive = Field(default=0.5, description="receiver heading noise, degrees")
+    sigma_accel: Positive = Field(
+        default=0.7, description="Kalman process noise: white acceleration, m/s^2"
+    )
+
+    # Tracks.
+    track_timeout: Positive = Field(
+        default=5.0, description="a gap longer than this (s) restarts a user's track"
+    )
+    group_timeout: Positive = Field(
+        default=3.0, description="a user silent for longer (s) leaves its segment's group"
+    )
+    max_map_distance: Positive = Field(
+        default=15.0, description="fixes farther than this (m) from every lane are off the map"
+    )
+
+    # Lane model.
+    sigma_lane: Positive = Field(
+        default=0.35, description="spread of a user's lateral position about its lane centre, m"
+    )
+    lane_change_rate: NonNegative = Field(
+        default=0.01, description="unprompted lane changes per second, to each side"
+    )
+    max_lane_change: Probability = Field(
+        default=0.45, description="largest probability of leaving a lane to one side in one step"
+    )
+
+    # Paper mode.
+    max_hypotheses: Annotated[int, Field(ge=1)] = Field(
+        default=1 << 20,
+        description="paper mode: users beyond this many joint hypotheses (L^N) are placed alone",
+    )
+
+    # Default mode: the common GNSS error, a 2-D random walk per area.
+    bias_prior: Positive = Field(
+        default=10.0, description="1-sigma of the common error before any evidence, m"
+    )
+    bias_drift: NonNegative = Field(
+        default=0.05, description="random-walk drift of the common error, m/sqrt(s)"
+    )
+    bias_area: Positive = Field(
+        default=2_000.0, description="side of the square area that shares one common error, m"
+    )

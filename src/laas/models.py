@@ -1,0 +1,69 @@
+"""The wire formats of LaaS: what a road user sends and what it gets back.
+
+Both are pydantic models in strict mode. They are the only place where untrusted
+input becomes typed values; everything inward takes these objects, never dicts.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["CorrectedPosition", "GpsMeasurement", "LaneType"]
+
+LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
+
+_STRICT = ConfigDict(strict=True, frozen=True, extra="forbid", allow_inf_nan=False)
+
+# 0 .. 9999-12-31 in milliseconds since the Unix epoch.
+Timestamp = Annotated[int, Field(ge=0, le=253_402_300_799_999)]
+Latitude = Annotated[float, Field(ge=-90.0, le=90.0)]
+Longitude = Annotated[float, Field(ge=-180.0, le=180.0)]
+
+
+class GpsMeasurement(BaseModel):
+    """One GNSS fix of one road user, as the receiver reports it.
+
+    >>> GpsMeasurement(timestamp=0, latitude=53.56, longitude=9.98, altitude=10.0,
+    ...                heading=30.0, speed=5.0).speed
+    5.0
+    """
+
+    model_config = _STRICT
+
+    timestamp: Timestamp = Field(description="time of the fix, ms since the Unix epoch")
+    latitude: Latitude = Field(description="WGS84 latitude, degrees")
+    longitude: Longitude = Field(description="WGS84 longitude, degrees")
+    altitude: Annotated[float, Field(ge=-1_000.0, le=100_000.0)] = Field(
+        default=0.0, description="height above the ellipsoid, m"
+    )
+    heading: Annotated[float, Field(ge=0.0, lt=360.0)] = Field(
+        description="course over ground, degrees from north, clockwise"
+    )
+    speed: Annotated[float, Field(ge=0.0, le=150.0)] = Field(description="ground speed, m/s")
+
+
+class CorrectedPosition(BaseModel):
+    """The lane-precise answer to one `GpsMeasurement`.
+
+    `segment`, `lane` and `lane_type` are None when the user is off the map; the
+    position is then the filtered (and, where known, bias-corrected) fix.
+    `accuracy_cross` and `accuracy_along` are 1-sigma error estimates in metres
+    across and along the road; `accuracy` is the horizontal 1-sigma radius.
+    """
+
+    model_config = _STRICT
+
+    timestamp: Timestamp = Field(description="timestamp of the measurement this answers")
+    latitude: Latitude
+    longitude: Longitude
+    segment: str | None = Field(description="road element (map segment) id")
+    lane: Annotated[int, Field(ge=0)] | None = Field(description="lane index, 0 = leftmost")
+    lane_type: LaneType | None
+    probability: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        description="posterior probability of the chosen lane"
+    )
+    accuracy: Annotated[float, Field(ge=0.0)] = Field(description="horizontal 1-sigma, m")
+    accuracy_cross: Annotated[float, Field(ge=0.0)] = Field(description="cross-road 1-sigma, m")
+    accuracy_along: Annotated[float, Field(ge=0.0)] = Field(description="along-road 1-sigma, m")

@@ -1,0 +1,40 @@
+"""Generate maps/messe-hamburg.geojson, the paper's four-lane test road near Messe Hamburg.
+
+    python maps/make_messe_hamburg.py > maps/messe-hamburg.geojson
+
+Deterministic: the same output on every run. The road runs north-north-east (bearing 25 degrees)
+for 290 m, turns left by 75 degrees on an 80 m radius (measured at the road's left edge), then
+runs 200 m north-west. Lanes, left to right: two forward driving lanes, a parking lane and a
+bicycle lane. Cut into five segments: two straights, the curve, two straights.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
+
+ORIGIN = (9.9760, 53.5585)  # lon, lat of the road's left edge at the start (St. Pauli, Messe)
+FIRST, RADIUS, TURN, LAST = 290.0, 80.0, -75.0, 200.0
+CURVE_LENGTH = RADIUS * abs(TURN) * 3.141592653589793 / 180.0
+SPLIT_AT = (145.0, FIRST, FIRST + CURVE_LENGTH, FIRST + CURVE_LENGTH + LAST / 2)
+LANES = (
+    LaneSpec("driving", 3.25, "forward"),
+    LaneSpec("driving", 3.25, "forward"),
+    LaneSpec("parking", 2.2, "forward"),
+    LaneSpec("bicycle", 1.8, "forward"),
+)
+
+
+def build() -> dict[str, object]:
+    local = track((0.0, 0.0), 25.0, [Straight(FIRST), Curve(RADIUS, TURN), Straight(LAST)])
+    reference = local_to_lonlat(local, *ORIGIN)
+    fc = road_features("messe", reference, LANES, split_at=SPLIT_AT)
+    fc["name"] = "messe-hamburg"
+    return fc
+
+
+if __name__ == "__main__":
+    json.dump(build(), sys.stdout, indent=1)
+    sys.stdout.write("\n")

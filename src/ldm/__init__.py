@@ -3,6 +3,53 @@
 Clusters (a broker and a core each), joined by an inter-cluster broker; retained
 service lists for discovery; rotating pseudonyms and end-to-end encryption between
 participants and services. The LDM knows nothing about positioning.
+
+    Participant   the client library: list services, open a session, request
+    Provider      the service library: announce, take all input by wildcard, reply
+    Core          one per cluster: discovery, pseudonyms, routing of ciphertext
+    EmbeddedBroker  an in-process MQTT broker for tests and zero-install runs
 """
 
-__all__: list[str] = []
+from ldm.broker import EmbeddedBroker
+from ldm.config import BrokerSettings, CoreConfig, ParticipantConfig, ProviderConfig
+from ldm.core import Core, CoreStats
+from ldm.crypto import KeyPair
+from ldm.errors import (
+    ConfigError,
+    ConnectError,
+    CryptoError,
+    LdmError,
+    RequestTimeout,
+    ServiceNotFound,
+    SessionError,
+)
+from ldm.messages import ServiceDescription, ServiceSpec, SessionGrant
+from ldm.participant import Participant, Session
+from ldm.provider import Handler, Provider, ProviderStats, Request
+
+__all__ = [
+    "BrokerSettings",
+    "ConfigError",
+    "ConnectError",
+    "Core",
+    "CoreConfig",
+    "CoreStats",
+    "CryptoError",
+    "EmbeddedBroker",
+    "Handler",
+    "KeyPair",
+    "LdmError",
+    "Participant",
+    "ParticipantConfig",
+    "Provider",
+    "ProviderConfig",
+    "ProviderStats",
+    "Request",
+    "RequestTimeout",
+    "ServiceDescription",
+    "ServiceNotFound",
+    "ServiceSpec",
+    "Session",
+    "SessionError",
+    "SessionGrant",
+]

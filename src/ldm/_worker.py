@@ -1,0 +1,67 @@
+"""The worker thread every LDM component runs its logic on.
+
+paho's network thread only puts events on the worker's queue; the worker handles them
+one at a time, so component state needs no locks, and runs ``tick`` between events.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import Generic, TypeVar
+
+__all__ = ["Worker"]
+
+log = logging.getLogger(__name__)
+
+_Item = TypeVar("_Item")
+_STOP = object()
+
+
+class Worker(Generic[_Item]):
+    """A named thread that calls ``handle(item)`` per queued item and ``tick(now)``."""
+
+    def __init__(self, name: str, interval: float) -> None:
+        self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
+        self._interval = interval
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def put(self, item: _Item) -> None:
+        """Hand an item to the worker; safe from any thread, never blocks."""
+        self._queue.put(item)
+
+    def start_worker(self) -> None:
+        self._thread.start()
+
+    def stop_worker(self, timeout: float = 5.0) -> None:
+        if self._thread.is_alive():
+            self._queue.put(_STOP)
+            if threading.current_thread() is not self._thread:
+                self._thread.join(timeout)
+
+    def handle(self, item: _Item) -> None:
+        raise NotImplementedError
+
+    def tick(self, now: float) -> None:
+        """Periodic housekeeping; the default does nothing."""
+
+    def _run(self) -> None:
+        next_tick = time.time() + self._interval
+        while True:
+            try:
+                item = self._queue.get(timeout=max(0.0, next_tick - time.time()))
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                return
+            try:
+                if item is not None:
+                    self.handle(item)  # type: ignore[arg-type]
+                now = time.time()
+                if now >= next_tick:
+                    next_tick = now + self._interval
+                    self.tick(now)
+            except Exception:
+                log.exception("%s: error while handling an event", self._thread.name)

@@ -1,0 +1,107 @@
+"""An embedded MQTT 3.1.1 broker (amqtt) for tests and zero-install runs.
+
+    with EmbeddedBroker() as broker:      # a free port on 127.0.0.1
+        print(broker.url)                 # mqtt://127.0.0.1:PORT
+
+The broker runs on its own asyncio loop in a daemon thread; this module is the only
+place that touches amqtt. It allows anonymous clients and keeps no persistence.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from typing import Any
+
+from ldm.errors import ConnectError
+
+__all__ = ["EmbeddedBroker"]
+
+_START_TIMEOUT = 10.0
+
+
+class EmbeddedBroker:
+    """An amqtt broker on ``host:port`` (port 0 picks a free port; ``port`` tells which)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.host = host
+        self.port = port
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._broker: Any = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://{self.host}:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        return self._broker is not None
+
+    def start(self) -> EmbeddedBroker:
+        """Start listening; after a stop, starts again on the same port."""
+        if self.running:
+            return self
+        for name in ("amqtt", "transitions"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+        ready = threading.Event()
+        failure: list[BaseException] = []
+        loop = asyncio.new_event_loop()
+
+        def run() -> None:
+            asyncio.set_event_loop(loop)
+            try:
+                loop.run_until_complete(self._open(loop))
+            except BaseException as exc:
+                failure.append(exc)
+                ready.set()
+                return
+            ready.set()
+            loop.run_forever()
+            loop.close()
+
+        self._loop = loop
+        self._thread = threading.Thread(target=run, name=f"ldm-broker-{self.port}", daemon=True)
+        self._thread.start()
+        if not ready.wait(_START_TIMEOUT) or failure:
+            self._broker = None
+            raise ConnectError(
+                f"embedded broker could not listen on {self.host}:{self.port}: "
+                f"{failure[0] if failure else 'timeout'}; pick another port"
+            )
+        return self
+
+    async def _open(self, loop: asyncio.AbstractEventLoop) -> None:
+        from amqtt.broker import Broker  # the one amqtt import
+
+        config = {
+            "listeners": {"default": {"type": "tcp", "bind": f"{self.host}:{self.port}"}},
+            "plugins": {
+                "amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}
+            },
+        }
+        broker = Broker(config, loop=loop)
+        await broker.start()
+        server = broker._servers["default"].instance
+        self.port = int(server.sockets[0].getsockname()[1])
+        self._broker = broker
+
+    def stop(self) -> None:
+        """Close every connection (no DISCONNECT, like a crash) and stop listening."""
+        broker, loop, thread = self._broker, self._loop, self._thread
+        if broker is None or loop is None or thread is None:
+            return
+        self._broker = None
+        try:
+            asyncio.run_coroutine_threadsafe(broker.shutdown(), loop).result(_START_TIMEOUT)
+        except Exception:
+            logging.getLogger(__name__).info("embedded broker: unclean shutdown")
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(_START_TIMEOUT)
+
+    def __enter__(self) -> EmbeddedBroker:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()

@@ -1,0 +1,183 @@
+"""Validated settings for broker connections, cores, providers and participants.
+
+Build them once at start; a bad value raises ConfigError naming the setting.
+Durations are seconds.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Self, TypeVar
+from urllib.parse import urlsplit
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from ldm.errors import ConfigError
+from ldm.topics import NAME_PATTERN
+
+__all__ = [
+    "BrokerSettings",
+    "CoreConfig",
+    "ParticipantConfig",
+    "ProviderConfig",
+    "build",
+]
+
+_Model = TypeVar("_Model", bound=BaseModel)
+
+
+def build(model: type[_Model], /, **values: Any) -> _Model:
+    """Validate `values` into `model`, turning pydantic's error into a ConfigError."""
+    try:
+        return model(**values)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or model.__name__}: {err['msg']}"
+            for err in exc.errors()
+        )
+        raise ConfigError(f"invalid {model.__name__}: {problems}") from None
+
+
+class _Settings(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class BrokerSettings(_Settings):
+    """How to reach one MQTT broker: ``mqtt://host:port`` or ``mqtts://host:port`` (TLS).
+
+    The password is a SecretStr (never printed); ``password_env`` names an environment
+    variable to read it from instead.
+    """
+
+    url: str
+    username: str | None = None
+    password: SecretStr | None = None
+    password_env: str | None = None
+    ca_file: Path | None = None
+    keepalive: int = Field(default=30, ge=5, le=3600)
+    reconnect_min: float = Field(default=0.1, gt=0, le=60)
+    reconnect_max: float = Field(default=5.0, gt=0, le=600)
+
+    @classmethod
+    def of(cls, value: BrokerSettings | str) -> BrokerSettings:
+        """Accept a settings object or a bare URL."""
+        return value if isinstance(value, BrokerSettings) else build(cls, url=value)
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, url: str) -> str:
+        parts = urlsplit(url)
+        if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+            raise ValueError("use mqtt://HOST:PORT or mqtts://HOST:PORT")
+        if parts.username or parts.password:
+            raise ValueError("put credentials in username/password_env, not in the URL")
+        _ = parts.port  # raises ValueError on a bad port
+        return url
+
+    @model_validator(mode="after")
+    def _password(self) -> Self:
+        if self.password_env and self.password is None:
+            secret = os.environ.get(self.password_env)
+            if secret is None:
+                raise ValueError(f"environment variable {self.password_env} is not set")
+            object.__setattr__(self, "password", SecretStr(secret))
+        if self.ca_file is not None and not self.ca_file.is_file():
+            raise ValueError(f"ca_file {self.ca_file} does not exist")
+        return self
+
+    @property
+    def tls(self) -> bool:
+        return urlsplit(self.url).scheme == "mqtts"
+
+    @property
+    def host(self) -> str:
+        return urlsplit(self.url).hostname or ""
+
+    @property
+    def port(self) -> int:
+        return urlsplit(self.url).port or (8883 if self.tls else 1883)
+
+
+def _name(value: str) -> str:
+    if not NAME_PATTERN.match(value):
+        raise ValueError("use 1-128 characters from letters, digits and . _ : -")
+    return value
+
+
+class CoreConfig(_Settings):
+    """One LDM core: its cluster broker, the backbone broker and the session policy.
+
+    Pseudonyms: a participant session's pseudonym lives ``rotation_period`` seconds
+    (default 120 s); then the core tells the participant to make a new ephemeral key,
+    and the first input under the new key gets a fresh random pseudonym. The old one
+    stays valid for ``grace`` seconds so replies in flight still reach the participant.
+    A session with no input for ``idle_timeout`` seconds is dropped. Services that are
+    not re-announced within ``service_ttl`` seconds disappear from every list. Data
+    older than ``max_age`` seconds (by its send timestamp) is dropped, never delivered late.
+    """
+
+    name: str
+    cluster: BrokerSettings
+    backbone: BrokerSettings | None = None
+    rotation_period: float = Field(default=120.0, gt=0)
+    grace: float = Field(default=5.0, ge=0)
+    idle_timeout: float = Field(default=30.0, gt=0)
+    service_ttl: float = Field(default=30.0, gt=0)
+    max_age: float = Field(default=2.0, gt=0)
+    data_qos: int = Field(default=0, ge=0, le=2)
+
+    _check_name = field_validator("name")(_name)
+
+    @field_validator("cluster", "backbone", mode="before")
+    @classmethod
+    def _broker(cls, value: object) -> object:
+        return {"url": value} if isinstance(value, str) else value
+
+    @property
+    def tick(self) -> float:
+        """Housekeeping interval: a fraction of the shortest period, 20 ms to 0.5 s."""
+        shortest = min(self.grace or 2.0, self.idle_timeout, self.service_ttl, self.rotation_period)
+        return max(0.02, min(0.5, shortest / 5))
+
+
+class ProviderConfig(_Settings):
+    """A service provider: its cluster broker and how often it re-announces."""
+
+    broker: BrokerSettings
+    announce_interval: float = Field(default=10.0, gt=0)
+    max_age: float = Field(default=2.0, gt=0)
+    data_qos: int = Field(default=0, ge=0, le=2)
+    client_id: str | None = None
+
+    _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
+
+    @field_validator("broker", mode="before")
+    @classmethod
+    def _broker(cls, value: object) -> object:
+        return {"url": value} if isinstance(value, str) else value
+
+
+class ParticipantConfig(_Settings):
+    """A participant: its user-cluster broker and MQTT client id (the core's only handle)."""
+
+    broker: BrokerSettings
+    client_id: str | None = None
+    max_age: float = Field(default=2.0, gt=0)
+    data_qos: int | None = Field(default=None, ge=0, le=2)
+    """QoS of input messages; None takes the core's value from the session grant."""
+
+    _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
+
+    @field_validator("broker", mode="before")
+    @classmethod
+    def _broker(cls, value: object) -> object:
+        return {"url": value} if isinstance(value, str) else value

@@ -1,0 +1,473 @@
+"""The LDM core: one per cluster, the same program in every cluster.
+
+A core links its cluster broker (participants and providers connect there) to the
+backbone broker (every core connects there). It
+
+- learns local providers' announcements, forwards them to the backbone and learns
+  every other core's; keeps the cluster's service list retained on ``ldm/services``;
+  drops services on withdrawal, on their core's last will, or after ``service_ttl``;
+- grants participant sessions and gives each a random pseudonym, bound to the
+  participant's current ephemeral key; a new key gets a new pseudonym (rotation),
+  the old one is honoured for ``grace`` seconds; idle sessions are dropped;
+- routes ciphertext: participant input leaves the user cluster under the pseudonym
+  only; replies come back by pseudonym and are mapped to the participant here.
+
+All state lives on the core's worker thread; paho's threads only enqueue events.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from dataclasses import dataclass, field
+
+from pydantic import ValidationError
+
+from ldm import topics
+from ldm._worker import Worker
+from ldm.config import BrokerSettings, CoreConfig, build
+from ldm.messages import (
+    Announcement,
+    CoreStatus,
+    Envelope,
+    ServiceDescription,
+    ServiceList,
+    SessionGrant,
+    SessionNotice,
+    SessionRequest,
+)
+from ldm.transport import Connected, Event, Message, Transport, Will
+
+__all__ = ["Core", "CoreStats"]
+
+log = logging.getLogger(__name__)
+
+_CLUSTER = "cluster"
+_BACKBONE = "backbone"
+
+
+def new_pseudonym() -> str:
+    """A fresh random pseudonym (96 bits), unlinkable to anything else."""
+    return secrets.token_urlsafe(12)
+
+
+@dataclass(slots=True)
+class _Service:
+    description: ServiceDescription
+    origin: str
+    expires: float
+
+
+@dataclass(slots=True)
+class _Pseudonym:
+    name: str
+    key: str
+    created: float
+    until: float = float("inf")  # end of grace once replaced
+
+
+@dataclass(slots=True)
+class _Session:
+    client: str
+    service: str
+    last_seen: float
+    current: _Pseudonym | None = None
+    old: list[_Pseudonym] = field(default_factory=list)
+    rotate_sent: bool = False
+
+
+@dataclass(slots=True)
+class _Route:
+    user_core: str
+    last_seen: float
+
+
+@dataclass(slots=True)
+class CoreStats:
+    """Counters a test or an operator can read (``Core.stats``)."""
+
+    forwarded_in: int = 0
+    forwarded_out: int = 0
+    dropped_stale: int = 0
+    dropped_unroutable: int = 0
+    dropped_invalid: int = 0
+    rotations: int = 0
+    sessions_expired: int = 0
+
+
+class Core(Worker[Event]):
+    """An LDM core. ``start()`` connects and runs it in background threads; ``stop()`` ends it."""
+
+    def __init__(self, config: CoreConfig) -> None:
+        super().__init__(f"ldm-core-{config.name}", config.tick)
+        self.config = config
+        self.name = config.name
+        self.stats = CoreStats()
+        self._services: dict[str, _Service] = {}
+        self._sessions: dict[tuple[str, str], _Session] = {}
+        self._pseudonyms: dict[str, _Session] = {}
+        self._routes: dict[str, _Route] = {}
+        self._published_list: list[ServiceDescription] | None = None
+        self.cluster = Transport(
+            config.cluster, client_id=f"ldm-core-{self.name}", sink=self.put, name=_CLUSTER
+        )
+        for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER):
+            self.cluster.subscribe(flt, 1)
+        self.cluster.subscribe(topics.PROVIDER_REPLY_FILTER, config.data_qos)
+        self.backbone: Transport | None = None
+        if config.backbone is not None:
+            offline = CoreStatus(name=self.name, online=False).model_dump_json().encode()
+            self.backbone = Transport(
+                config.backbone,
+                client_id=f"ldm-core-{self.name}-bb",
+                sink=self.put,
+                name=_BACKBONE,
+                will=Will(topics.bb_core(self.name), offline, qos=1, retain=True),
+            )
+            for flt in (topics.BB_ANNOUNCE_FILTER, topics.BB_CORE_FILTER):
+                self.backbone.subscribe(flt, 1)
+            self.backbone.subscribe(topics.bb_input_filter(self.name), config.data_qos)
+            self.backbone.subscribe(topics.bb_reply_filter(self.name), config.data_qos)
+
+    @classmethod
+    def create(
+        cls,
+        name: str,
+        cluster: BrokerSettings | str,
+        backbone: BrokerSettings | str | None = None,
+        **settings: float | int,
+    ) -> Core:
+        """Build a core from URLs or settings plus any CoreConfig field."""
+        return cls(
+            build(
+                CoreConfig,
+                name=name,
+                cluster=BrokerSettings.of(cluster),
+                backbone=None if backbone is None else BrokerSettings.of(backbone),
+                **settings,
+            )
+        )
+
+    # --- lifecycle (caller's thread) --------------------------------------------------
+
+    def start(self, timeout: float | None = 10.0) -> Core:
+        """Start the worker and connect; with a timeout, wait for both brokers."""
+        self.start_worker()
+        self.cluster.start(timeout)
+        if self.backbone is not None:
+            self.backbone.start(timeout)
+        return self
+
+    def stop(self) -> None:
+        """Withdraw this core's services from the backbone, clear the list, disconnect."""
+        self.stop_worker()
+        if self.backbone is not None:
+            for name, svc in self._services.items():
+                if svc.origin == self.name:
+                    self.backbone.publish_and_wait(topics.bb_announce(name), b"", retain=True)
+            status = CoreStatus(name=self.name, online=False).model_dump_json().encode()
+            self.backbone.publish_and_wait(topics.bb_core(self.name), status, retain=True)
+            self.backbone.stop()
+        self.cluster.publish_and_wait(topics.SERVICES, b"", retain=True)
+        self.cluster.stop()
+
+    def __enter__(self) -> Core:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+    @property
+    def services(self) -> list[ServiceDescription]:
+        """A snapshot of the services this core knows (read from any thread)."""
+        return [s.description for s in list(self._services.values())]
+
+    @property
+    def session_count(self) -> int:
+        return len(self._sessions)
+
+    # --- worker thread ----------------------------------------------------------------
+
+    def handle(self, item: Event) -> None:
+        if isinstance(item, Connected):
+            self._on_connected(item.source)
+            return
+        levels = item.topic.split("/")
+        try:
+            if item.source == _CLUSTER:
+                self._from_cluster(item, levels)
+            else:
+                self._from_backbone(item, levels)
+        except ValidationError:
+            self.stats.dropped_invalid += 1
+            log.debug("%s: dropped a malformed message on %s", self.name, item.topic)
+
+    def tick(self, now: float) -> None:
+        self._expire_services(now)
+        self._expire_sessions(now)
+        for pseudonym, route in list(self._routes.items()):
+            if now - route.last_seen > self.config.idle_timeout + self.config.grace:
+                del self._routes[pseudonym]
+
+    def _on_connected(self, source: str) -> None:
+        if source == _CLUSTER:
+            self._published_list = None
+            self._publish_list()
+        elif self.backbone is not None:
+            status = CoreStatus(name=self.name, online=True).model_dump_json().encode()
+            self.backbone.publish(topics.bb_core(self.name), status, qos=1, retain=True)
+            for name, svc in self._services.items():
+                if svc.origin == self.name:
+                    self._announce_backbone(name, svc)
+
+    def _from_cluster(self, msg: Message, levels: list[str]) -> None:
+        # ldm/p/{client}/up/session | ldm/p/{client}/up/data/{service}
+        if levels[1] == "p" and len(levels) >= 5:
+            client = levels[2]
+            if levels[4] == "session" and len(levels) == 5:
+                self._session_request(client, SessionRequest.model_validate_json(msg.payload))
+            elif levels[4] == "data" and len(levels) == 6:
+                self._participant_input(
+                    client, levels[5], Envelope.model_validate_json(msg.payload)
+                )
+        elif levels[1] == "svc" and len(levels) >= 4:
+            service = levels[2]
+            if levels[3] == "announce":
+                self._local_announcement(service, msg.payload)
+            elif levels[3] == "out" and len(levels) == 5:
+                self._reply(service, levels[4], Envelope.model_validate_json(msg.payload))
+
+    def _from_backbone(self, msg: Message, levels: list[str]) -> None:
+        kind = levels[2] if len(levels) > 2 else ""
+        if kind == "announce" and len(levels) == 4:
+            self._remote_announcement(levels[3], msg.payload)
+        elif kind == "core" and len(levels) == 4 and msg.payload:
+            status = CoreStatus.model_validate_json(msg.payload)
+            if not status.online and status.name != self.name:
+                self._drop_origin(status.name)
+        elif kind == "in" and len(levels) == 7:
+            # ldm/bb/in/{me}/{service}/{user_core}/{pseudonym}
+            service, user_core, pseudonym = levels[4], levels[5], levels[6]
+            env = Envelope.model_validate_json(msg.payload)
+            if self._stale(env):
+                return
+            svc = self._services.get(service)
+            if svc is None or svc.origin != self.name:
+                self.stats.dropped_unroutable += 1
+                return
+            self._routes[pseudonym] = _Route(user_core, time.time())
+            self.cluster.publish(
+                topics.provider_input(service, pseudonym), env.encode(), self.config.data_qos
+            )
+            self.stats.forwarded_in += 1
+        elif kind == "out" and len(levels) == 6:
+            # ldm/bb/out/{me}/{service}/{pseudonym}
+            self._deliver(levels[4], levels[5], Envelope.model_validate_json(msg.payload))
+
+    # --- services ---------------------------------------------------------------------
+
+    def _local_announcement(self, service: str, payload: bytes) -> None:
+        if not payload:
+            svc = self._services.get(service)
+            if svc is not None and svc.origin == self.name:
+                self._remove_service(service)
+            return
+        ann = Announcement.model_validate_json(payload)
+        if ann.service.name != service:
+            self.stats.dropped_invalid += 1
+            return
+        expires = ann.t + self.config.service_ttl
+        if expires <= time.time():
+            return  # a stale retained announcement of a provider that is gone
+        svc = _Service(ann.service, self.name, expires)
+        self._services[service] = svc
+        self._announce_backbone(service, svc, ann.t)
+        self._publish_list()
+
+    def _announce_backbone(self, service: str, svc: _Service, t: float | None = None) -> None:
+        if self.backbone is None:
+            return
+        stamp = svc.expires - self.config.service_ttl if t is None else t
+        ann = Announcement(service=svc.description, t=stamp, origin=self.name)
+        self.backbone.publish(
+            topics.bb_announce(service), ann.model_dump_json().encode(), qos=1, retain=True
+        )
+
+    def _remote_announcement(self, service: str, payload: bytes) -> None:
+        if not payload:
+            svc = self._services.get(service)
+            if svc is not None and svc.origin != self.name:
+                self._remove_service(service)
+            return
+        ann = Announcement.model_validate_json(payload)
+        if ann.origin is None or ann.origin == self.name or ann.service.name != service:
+            return
+        current = self._services.get(service)
+        if current is not None and current.origin == self.name:
+            return  # a local provider wins over a remote one of the same name
+        expires = ann.t + self.config.service_ttl
+        if expires <= time.time():
+            return
+        self._services[service] = _Service(ann.service, ann.origin, expires)
+        self._publish_list()
+
+    def _remove_service(self, service: str) -> None:
+        svc = self._services.pop(service, None)
+        if svc is None:
+            return
+        log.info("%s: service %s is gone", self.name, service)
+        if svc.origin == self.name and self.backbone is not None:
+            self.backbone.publish(topics.bb_announce(service), b"", qos=1, retain=True)
+        self._publish_list()
+
+    def _drop_origin(self, origin: str) -> None:
+        for name in [n for n, s in self._services.items() if s.origin == origin]:
+            self._remove_service(name)
+
+    def _expire_services(self, now: float) -> None:
+        for name in [n for n, s in self._services.items() if s.expires <= now]:
+            self._remove_service(name)
+
+    def _publish_list(self) -> None:
+        services = sorted((s.description for s in self._services.values()), key=lambda d: d.name)
+        if services == self._published_list:
+            return
+        self._published_list = services
+        payload = ServiceList(t=time.time(), services=services).model_dump_json().encode()
+        self.cluster.publish(topics.SERVICES, payload, qos=1, retain=True)
+
+    # --- participant sessions ---------------------------------------------------------
+
+    def _notify(self, client: str, notice: SessionNotice) -> None:
+        payload = notice.model_dump_json(exclude_none=True).encode()
+        self.cluster.publish(topics.session_notice(client), payload, qos=1)
+
+    def _session_request(self, client: str, req: SessionRequest) -> None:
+        svc = self._services.get(req.service)
+        if svc is None:
+            error = f"no service {req.service!r} in this cluster; list the services first"
+            self._notify(
+                client, SessionNotice(kind="refused", service=req.service, c=req.c, error=error)
+            )
+            return
+        now = time.time()
+        session = self._sessions.get((client, req.service))
+        if session is None:
+            session = _Session(client, req.service, now)
+            self._sessions[(client, req.service)] = session
+        session.last_seen = now
+        cfg = self.config
+        grant = SessionGrant(
+            service=svc.description,
+            session=secrets.token_urlsafe(9),
+            input_topic=topics.participant_input(client, req.service),
+            reply_topic=topics.participant_reply(client, req.service),
+            rotation_period=cfg.rotation_period,
+            grace=cfg.grace,
+            idle_timeout=cfg.idle_timeout,
+            max_age=cfg.max_age,
+            data_qos=cfg.data_qos,
+        )
+        self._notify(client, SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant))
+
+    def _stale(self, env: Envelope) -> bool:
+        if time.time() - env.t > self.config.max_age:
+            self.stats.dropped_stale += 1
+            return True
+        return False
+
+    def _participant_input(self, client: str, service: str, env: Envelope) -> None:
+        if self._stale(env):
+            return
+        session = self._sessions.get((client, service))
+        if session is None or env.k is None:
+            self._notify(client, SessionNotice(kind="nosession", service=service, c=env.c))
+            return
+        svc = self._services.get(service)
+        if svc is None:
+            error = f"service {service!r} is gone"
+            self._notify(
+                client, SessionNotice(kind="refused", service=service, c=env.c, error=error)
+            )
+            return
+        now = time.time()
+        session.last_seen = now
+        pseudonym = self._pseudonym_for(session, env.k, now)
+        payload = env.encode()
+        if svc.origin == self.name:
+            self.cluster.publish(
+                topics.provider_input(service, pseudonym), payload, self.config.data_qos
+            )
+        elif self.backbone is not None:
+            topic = topics.bb_input(svc.origin, service, self.name, pseudonym)
+            self.backbone.publish(topic, payload, self.config.data_qos)
+        else:
+            self.stats.dropped_unroutable += 1
+            return
+        self.stats.forwarded_in += 1
+
+    def _pseudonym_for(self, session: _Session, key: str, now: float) -> str:
+        """The pseudonym bound to this ephemeral key; a new key means a new pseudonym."""
+        current = session.current
+        if current is not None and current.key == key:
+            return current.name
+        for old in session.old:
+            if old.key == key and old.until > now:
+                return old.name  # input sent before the rotation, still in its grace
+        fresh = _Pseudonym(new_pseudonym(), key, now)
+        if current is not None:
+            current.until = now + self.config.grace
+            session.old.append(current)
+            self.stats.rotations += 1
+        session.current = fresh
+        session.rotate_sent = False
+        self._pseudonyms[fresh.name] = session
+        return fresh.name
+
+    def _reply(self, service: str, pseudonym: str, env: Envelope) -> None:
+        """A local provider replied: to a local participant, or back over the backbone."""
+        if self._stale(env):
+            return
+        if pseudonym in self._pseudonyms:
+            self._deliver(service, pseudonym, env)
+            return
+        route = self._routes.get(pseudonym)
+        if route is None or self.backbone is None:
+            self.stats.dropped_unroutable += 1
+            return
+        self.backbone.publish(
+            topics.bb_reply(route.user_core, service, pseudonym), env.encode(), self.config.data_qos
+        )
+        self.stats.forwarded_out += 1
+
+    def _deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
+        if self._stale(env):
+            return
+        session = self._pseudonyms.get(pseudonym)
+        if session is None or session.service != service:
+            self.stats.dropped_unroutable += 1
+            return
+        reply = Envelope(c=env.c, t=env.t, d=env.d).encode()
+        self.cluster.publish(
+            topics.participant_reply(session.client, service), reply, self.config.data_qos
+        )
+        self.stats.forwarded_out += 1
+
+    def _expire_sessions(self, now: float) -> None:
+        cfg = self.config
+        for key, session in list(self._sessions.items()):
+            if now - session.last_seen > cfg.idle_timeout:
+                del self._sessions[key]
+                for p in [session.current, *session.old]:
+                    if p is not None:
+                        self._pseudonyms.pop(p.name, None)
+                self.stats.sessions_expired += 1
+                continue
+            for old in [p for p in session.old if p.until <= now]:
+                session.old.remove(old)
+                self._pseudonyms.pop(old.name, None)
+            current = session.current
+            if current and not session.rotate_sent and now - current.created >= cfg.rotation_period:
+                session.rotate_sent = True
+                self._notify(session.client, SessionNotice(kind="rotate", service=session.service))

@@ -1,0 +1,87 @@
+"""End-to-end payload encryption between a participant session and a service.
+
+X25519 agreement between the participant's ephemeral key and the service's static key,
+HKDF-SHA256 to two 32-byte keys (one per direction), ChaCha20-Poly1305 with a random
+96-bit nonce per message. The correlation id is authenticated as associated data.
+
+    shared   = X25519(eph_private, service_public)
+    up|down  = HKDF-SHA256(shared, salt=None, info="ldm/1" | eph_public | service_public, L=64)
+    d        = base64(nonce || ChaCha20Poly1305(key).encrypt(nonce, plaintext, c))
+
+Keys and plaintext are never logged.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import os
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+from ldm.errors import CryptoError
+
+__all__ = ["KeyPair", "SessionCipher"]
+
+_NONCE = 12
+
+
+class KeyPair:
+    """An X25519 key pair: static for a service, ephemeral for a participant session."""
+
+    __slots__ = ("_private", "public")
+
+    def __init__(self, private: X25519PrivateKey | None = None) -> None:
+        self._private = private or X25519PrivateKey.generate()
+        raw = self._private.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self.public: str = base64.b64encode(raw).decode()
+        """The public key, base64 of the 32 raw bytes."""
+
+    @classmethod
+    def from_private_bytes(cls, raw: bytes) -> KeyPair:
+        """Load a persisted 32-byte private key."""
+        try:
+            return cls(X25519PrivateKey.from_private_bytes(raw))
+        except ValueError as exc:
+            raise CryptoError("a private key must be 32 raw bytes") from exc
+
+    def cipher(self, peer_public: str, *, initiator: bool) -> SessionCipher:
+        """Derive the session cipher with a peer; the participant is the initiator."""
+        try:
+            peer_raw = base64.b64decode(peer_public, validate=True)
+            shared = self._private.exchange(X25519PublicKey.from_public_bytes(peer_raw))
+        except (ValueError, binascii.Error) as exc:
+            raise CryptoError("a public key must be base64 of 32 raw bytes") from exc
+        eph, svc = (self.public, peer_public) if initiator else (peer_public, self.public)
+        info = b"ldm/1|" + eph.encode() + b"|" + svc.encode()
+        okm = HKDF(algorithm=hashes.SHA256(), length=64, salt=None, info=info).derive(shared)
+        up, down = okm[:32], okm[32:]
+        return SessionCipher(up, down) if initiator else SessionCipher(down, up)
+
+
+class SessionCipher:
+    """Seals outgoing and opens incoming payloads of one session, seen from one side."""
+
+    __slots__ = ("_rx", "_tx")
+
+    def __init__(self, tx_key: bytes, rx_key: bytes) -> None:
+        self._tx = ChaCha20Poly1305(tx_key)
+        self._rx = ChaCha20Poly1305(rx_key)
+
+    def seal(self, plaintext: bytes, aad: str) -> str:
+        """Encrypt and authenticate; returns base64(nonce || ciphertext || tag)."""
+        nonce = os.urandom(_NONCE)
+        return base64.b64encode(nonce + self._tx.encrypt(nonce, plaintext, aad.encode())).decode()
+
+    def open(self, sealed: str, aad: str) -> bytes:
+        """Decrypt and check; raises CryptoError if the payload was altered or misdirected."""
+        try:
+            raw = base64.b64decode(sealed, validate=True)
+            return self._rx.decrypt(raw[:_NONCE], raw[_NONCE:], aad.encode())
+        except (InvalidTag, ValueError, binascii.Error) as exc:
+            raise CryptoError("payload failed authentication (wrong key or altered)") from exc

@@ -1,0 +1,50 @@
+"""The LDM error tree.
+
+LdmError
+├── ConfigError        an invalid setting (names the setting and what is allowed)
+├── ConnectError       a broker could not be reached in time
+├── ServiceNotFound    the requested service is not in the cluster's service list
+├── SessionError       the core refused or lost a session
+├── RequestTimeout     no reply arrived in time (also a TimeoutError)
+└── CryptoError        a payload could not be decrypted or a key is malformed
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "ConfigError",
+    "ConnectError",
+    "CryptoError",
+    "LdmError",
+    "RequestTimeout",
+    "ServiceNotFound",
+    "SessionError",
+]
+
+
+class LdmError(Exception):
+    """Base class of every error the LDM raises on purpose."""
+
+
+class ConfigError(LdmError, ValueError):
+    """A configuration value is invalid; the message names the setting."""
+
+
+class ConnectError(LdmError, ConnectionError):
+    """A broker could not be reached; check the URL, the broker and the credentials."""
+
+
+class ServiceNotFound(LdmError, LookupError):
+    """The service is not announced in this cluster; list the services to see what is."""
+
+
+class SessionError(LdmError):
+    """The core refused a session or no longer knows it."""
+
+
+class RequestTimeout(LdmError, TimeoutError):
+    """No reply arrived before the timeout (the data may have been dropped as stale)."""
+
+
+class CryptoError(LdmError):
+    """A payload failed authentication or a key is malformed."""

@@ -1,0 +1,329 @@
+"""The participant library: a small client that uses LDM services.
+
+    with Participant.create("mqtt://localhost:1883", client_id="car-17") as p:
+        print([s.name for s in p.services()])
+        echo = p.open("echo")
+        print(echo.request({"hello": "world"}))
+
+No topic is spelled by the user. Payloads are JSON objects, encrypted end to end for
+the service; the core only routes them. There is no log-off: stop sending and the core
+drops the session after its idle timeout. If the core lost the session (idle, restart)
+the library asks for it again and re-sends the requests still waiting for a reply.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import threading
+import time
+from collections.abc import Mapping
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+
+from ldm import topics
+from ldm._worker import Worker
+from ldm.config import BrokerSettings, ParticipantConfig, build
+from ldm.crypto import KeyPair, SessionCipher
+from ldm.errors import CryptoError, RequestTimeout, ServiceNotFound, SessionError
+from ldm.messages import (
+    Envelope,
+    ServiceDescription,
+    ServiceList,
+    SessionGrant,
+    SessionNotice,
+    SessionRequest,
+)
+from ldm.transport import Connected, Event, Message, Transport
+
+__all__ = ["Participant", "Session"]
+
+Payload = dict[str, Any]
+
+
+def _token() -> str:
+    return secrets.token_urlsafe(9)
+
+
+@dataclass(slots=True)
+class _Keys:
+    """One ephemeral key and its cipher with the service: one pseudonym at the core."""
+
+    pair: KeyPair
+    cipher: SessionCipher
+
+    @classmethod
+    def new(cls, service: ServiceDescription) -> _Keys:
+        pair = KeyPair()
+        return cls(pair, pair.cipher(service.public_key, initiator=True))
+
+
+@dataclass(slots=True)
+class _Pending:
+    future: Future[Payload]
+    keys: _Keys
+    plaintext: bytes
+    sent: float
+
+
+class Session:
+    """An open session with one service: send input, get replies (thread-safe)."""
+
+    def __init__(self, participant: Participant, grant: SessionGrant) -> None:
+        self._participant = participant
+        self.grant = grant
+        self._keys = _Keys.new(grant.service)
+        self._pending: dict[str, _Pending] = {}
+        self._lock = threading.Lock()
+        self._reopen_c: str | None = None
+        self._reopen_at = 0.0
+        self.rotations = 0
+        """How many times this session changed its ephemeral key (and pseudonym)."""
+
+    @property
+    def service(self) -> ServiceDescription:
+        return self.grant.service
+
+    def submit(self, payload: Mapping[str, Any]) -> Future[Payload]:
+        """Send one input now; the future gets the service's reply."""
+        c = _token()
+        pending = _Pending(
+            Future(), self._keys, json.dumps(payload, separators=(",", ":")).encode(), 0.0
+        )
+        with self._lock:
+            self._pending[c] = pending
+        self._send(c, pending)
+        return pending.future
+
+    def request(self, payload: Mapping[str, Any], timeout: float = 2.0) -> Payload:
+        """Send one input and wait for the reply; RequestTimeout if none comes in time."""
+        future = self.submit(payload)
+        try:
+            return future.result(timeout)
+        except FutureTimeout:
+            self._forget(future)
+            raise RequestTimeout(
+                f"no reply from {self.service.name!r} within {timeout} s "
+                "(dropped as stale, or the service is busy or gone)"
+            ) from None
+
+    def send(self, payload: Mapping[str, Any]) -> None:
+        """Send one input without waiting for (or keeping) a reply."""
+        self._forget(self.submit(payload))
+
+    def _forget(self, future: Future[Payload]) -> None:
+        with self._lock:
+            for c, p in list(self._pending.items()):
+                if p.future is future:
+                    del self._pending[c]
+
+    def _send(self, c: str, pending: _Pending) -> None:
+        keys = pending.keys
+        pending.sent = time.time()
+        env = Envelope(
+            c=c, t=pending.sent, k=keys.pair.public, d=keys.cipher.seal(pending.plaintext, c)
+        )
+        self._participant._publish_input(self, env)
+
+    # --- participant's worker thread --------------------------------------------------
+
+    def _rotate(self) -> None:
+        self._keys = _Keys.new(self.grant.service)
+        self.rotations += 1
+
+    def _regrant(self, grant: SessionGrant) -> None:
+        """The core granted the session again: new key, re-send what is still waiting."""
+        self.grant = grant
+        self._rotate()
+        with self._lock:
+            waiting = list(self._pending.items())
+        for c, pending in waiting:
+            pending.keys = self._keys
+            self._send(c, pending)
+
+    def _reply(self, env: Envelope) -> None:
+        with self._lock:
+            pending = self._pending.pop(env.c, None)
+        if pending is None:
+            return
+        try:
+            payload = json.loads(pending.keys.cipher.open(env.d, env.c))
+        except (CryptoError, ValueError) as exc:
+            pending.future.set_exception(CryptoError(f"reply from {self.service.name!r}: {exc}"))
+            return
+        pending.future.set_result(payload)
+
+    def _fail(self, c: str | None, error: Exception) -> None:
+        with self._lock:
+            pending = self._pending.pop(c, None) if c is not None else None
+        if pending is not None:
+            pending.future.set_exception(error)
+
+    def _expire(self, now: float, limit: float) -> None:
+        with self._lock:
+            old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
+            for c, _ in old:
+                del self._pending[c]
+        for _, p in old:
+            p.future.set_exception(RequestTimeout("no reply in time; the input or reply was stale"))
+
+
+class Participant(Worker[Event]):
+    """A participant client of one user-cluster broker. Use as a context manager."""
+
+    def __init__(self, config: ParticipantConfig) -> None:
+        super().__init__("ldm-participant", 0.25)
+        self.config = config
+        self.client_id = config.client_id or f"ldm-p-{secrets.token_hex(6)}"
+        self._services: list[ServiceDescription] = []
+        self._have_list = threading.Event()
+        self._opening: dict[str, Future[SessionGrant]] = {}
+        self._sessions: dict[str, Session] = {}
+        self._lock = threading.Lock()
+        self.transport = Transport(
+            config.broker, client_id=self.client_id, sink=self.put, name=self.client_id
+        )
+        self.transport.subscribe(topics.SERVICES, 1)
+        self.transport.subscribe(topics.participant_down(self.client_id), 1)
+
+    @classmethod
+    def create(
+        cls, broker: BrokerSettings | str, client_id: str | None = None, **settings: Any
+    ) -> Participant:
+        """Build a participant from a URL or settings plus any ParticipantConfig field."""
+        config = build(
+            ParticipantConfig, broker=BrokerSettings.of(broker), client_id=client_id, **settings
+        )
+        return cls(config)
+
+    def start(self, timeout: float | None = 10.0) -> Participant:
+        self.start_worker()
+        self.transport.start(timeout)
+        return self
+
+    def stop(self) -> None:
+        """Disconnect. No log-off is sent: the core drops idle sessions by itself."""
+        self.stop_worker()
+        self.transport.stop()
+
+    def __enter__(self) -> Participant:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+    def services(self, timeout: float = 5.0) -> list[ServiceDescription]:
+        """The cluster's current service list (waits for the retained list once)."""
+        self._have_list.wait(timeout)
+        return list(self._services)
+
+    def open(self, service: str, timeout: float = 5.0) -> Session:
+        """Request a session with a service and wait for the core's grant."""
+        c = _token()
+        future: Future[SessionGrant] = Future()
+        with self._lock:
+            self._opening[c] = future
+        request = SessionRequest(c=c, service=service, t=time.time())
+        self.transport.publish(
+            topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
+        )
+        try:
+            grant = future.result(timeout)
+        except FutureTimeout:
+            raise SessionError(
+                f"no answer to the session request for {service!r} within {timeout} s; "
+                "is the cluster's LDM core running?"
+            ) from None
+        finally:
+            with self._lock:
+                self._opening.pop(c, None)
+        session = Session(self, grant)
+        with self._lock:
+            self._sessions[service] = session
+        return session
+
+    def _publish_input(self, session: Session, env: Envelope) -> None:
+        qos = self.config.data_qos if self.config.data_qos is not None else session.grant.data_qos
+        topic = topics.participant_input(self.client_id, session.service.name)
+        self.transport.publish(topic, env.encode(), qos)
+
+    def _reopen(self, session: Session) -> None:
+        now = time.time()
+        if session._reopen_c is not None and now - session._reopen_at < 1.0:
+            return  # asked already; ask again only if no grant came within a second
+        c = session._reopen_c = _token()
+        session._reopen_at = now
+        request = SessionRequest(c=c, service=session.service.name, t=time.time())
+        self.transport.publish(
+            topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
+        )
+
+    # --- worker thread ----------------------------------------------------------------
+
+    def handle(self, item: Event) -> None:
+        if isinstance(item, Connected):
+            return
+        try:
+            self._message(item)
+        except ValidationError:
+            return
+
+    def _message(self, msg: Message) -> None:
+        if msg.topic == topics.SERVICES:
+            services = ServiceList.model_validate_json(msg.payload).services if msg.payload else []
+            self._services = services
+            self._have_list.set()
+            self._check_keys(services)
+            return
+        levels = msg.topic.split("/")
+        if len(levels) == 5 and levels[4] == "session":
+            self._notice(SessionNotice.model_validate_json(msg.payload))
+        elif len(levels) == 6 and levels[4] == "data":
+            session = self._sessions.get(levels[5])
+            env = Envelope.model_validate_json(msg.payload)
+            if session is not None and time.time() - env.t <= self.config.max_age:
+                session._reply(env)
+
+    def _notice(self, notice: SessionNotice) -> None:
+        session = self._sessions.get(notice.service)
+        if notice.kind == "grant" and notice.grant is not None:
+            with self._lock:
+                opening = self._opening.get(notice.c or "")
+            if opening is not None:
+                opening.set_result(notice.grant)
+            elif session is not None and notice.c == session._reopen_c:
+                session._reopen_c = None
+                session._regrant(notice.grant)
+        elif notice.kind == "refused":
+            error = ServiceNotFound(notice.error or f"service {notice.service!r} refused")
+            with self._lock:
+                opening = self._opening.get(notice.c or "")
+            if opening is not None:
+                opening.set_exception(error)
+            elif session is not None:
+                if notice.c == session._reopen_c:
+                    session._reopen_c = None
+                session._fail(notice.c, error)
+        elif notice.kind == "rotate" and session is not None:
+            session._rotate()
+        elif notice.kind == "nosession" and session is not None:
+            self._reopen(session)
+
+    def _check_keys(self, services: list[ServiceDescription]) -> None:
+        """A service that restarted with a new key needs its sessions opened again."""
+        keys = {s.name: s.public_key for s in services}
+        for session in list(self._sessions.values()):
+            key = keys.get(session.service.name)
+            if key is not None and key != session.service.public_key:
+                self._reopen(session)
+
+    def tick(self, now: float) -> None:
+        limit = 2 * self.config.max_age + 1.0
+        for session in list(self._sessions.values()):
+            session._expire(now, limit)
+            if session._reopen_c is not None:
+                self._reopen(session)

@@ -1,0 +1,210 @@
+"""The provider library: offer a service on the LDM.
+
+A provider connects to its cluster broker, announces its service (retained, with a last
+will that withdraws it, re-announced every ``announce_interval``), takes the input of
+all participants through one wildcard subscription and replies to pseudonyms. It never
+learns who a participant is: only a pseudonym, which changes on rotation, and a fresh
+ephemeral key with it.
+
+The handler runs on the provider's worker thread, one request at a time; it returns the
+reply payload (or None to reply later with `Provider.reply`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+
+from ldm import topics
+from ldm._worker import Worker
+from ldm.config import BrokerSettings, ProviderConfig, build
+from ldm.crypto import KeyPair, SessionCipher
+from ldm.errors import CryptoError, SessionError
+from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec
+from ldm.transport import Connected, Event, Message, Transport, Will
+
+__all__ = ["Handler", "Provider", "ProviderStats", "Request"]
+
+log = logging.getLogger(__name__)
+
+_CACHE = 50_000  # derived session ciphers kept (one per live pseudonym)
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """One decrypted input: who (a pseudonym), which request (``correlation_id``), what."""
+
+    pseudonym: str
+    correlation_id: str
+    payload: dict[str, Any]
+    sent_at: float
+    new_pseudonym: bool
+    """True for the first input seen under this pseudonym (a new session or a rotation)."""
+
+
+Handler = Callable[[Request], Mapping[str, Any] | None]
+
+
+@dataclass(slots=True)
+class ProviderStats:
+    """Counters (``Provider.stats``)."""
+
+    requests: int = 0
+    replies: int = 0
+    dropped_stale: int = 0
+    dropped_invalid: int = 0
+    handler_errors: int = 0
+
+
+class Provider(Worker[Event]):
+    """A service provider. ``start()`` announces and serves; ``stop()`` withdraws."""
+
+    def __init__(
+        self,
+        config: ProviderConfig,
+        spec: ServiceSpec,
+        handler: Handler,
+        *,
+        key: KeyPair | None = None,
+    ) -> None:
+        super().__init__(f"ldm-provider-{spec.name}", min(0.5, config.announce_interval / 4))
+        self.config = config
+        self.key = key or KeyPair()
+        self.description = ServiceDescription(**spec.model_dump(), public_key=self.key.public)
+        self.name = spec.name
+        self.stats = ProviderStats()
+        self._handler = handler
+        self._ciphers: OrderedDict[str, SessionCipher] = OrderedDict()
+        self._by_pseudonym: OrderedDict[str, SessionCipher] = OrderedDict()
+        self._next_announce = 0.0
+        client_id = config.client_id or f"ldm-svc-{spec.name}-{secrets.token_hex(3)}"
+        self.transport = Transport(
+            config.broker,
+            client_id=client_id,
+            sink=self.put,
+            name=f"provider-{spec.name}",
+            will=Will(topics.announce(spec.name), b"", qos=1, retain=True),
+        )
+        self.transport.subscribe(topics.provider_input_filter(spec.name), config.data_qos)
+
+    @classmethod
+    def create(
+        cls,
+        broker: BrokerSettings | str,
+        spec: ServiceSpec,
+        handler: Handler,
+        *,
+        key: KeyPair | None = None,
+        **settings: Any,
+    ) -> Provider:
+        """Build a provider from a URL or settings plus any ProviderConfig field."""
+        config = build(ProviderConfig, broker=BrokerSettings.of(broker), **settings)
+        return cls(config, spec, handler, key=key)
+
+    def start(self, timeout: float | None = 10.0) -> Provider:
+        """Connect, announce and serve in background threads."""
+        self.start_worker()
+        self.transport.start(timeout)
+        return self
+
+    def stop(self) -> None:
+        """Withdraw the announcement and disconnect."""
+        self.stop_worker()
+        self.transport.publish_and_wait(topics.announce(self.name), b"", qos=1, retain=True)
+        self.transport.stop()
+
+    def kill(self) -> None:
+        """Vanish without a goodbye (for fault tests): the broker publishes the last will."""
+        self.stop_worker()
+        self.transport.kill()
+
+    def __enter__(self) -> Provider:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+    def reply(self, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]) -> None:
+        """Send a reply to a pseudonym seen recently (any thread)."""
+        cipher = self._by_pseudonym.get(pseudonym)
+        if cipher is None:
+            raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
+        self._send(cipher, pseudonym, correlation_id, payload)
+
+    # --- worker thread ----------------------------------------------------------------
+
+    def handle(self, item: Event) -> None:
+        if isinstance(item, Connected):
+            self._announce(time.time())
+        else:
+            self._input(item)
+
+    def tick(self, now: float) -> None:
+        if now >= self._next_announce and self.transport.connected:
+            self._announce(now)
+
+    def _announce(self, now: float) -> None:
+        self._next_announce = now + self.config.announce_interval
+        ann = Announcement(service=self.description, t=now)
+        self.transport.publish(
+            topics.announce(self.name), ann.model_dump_json().encode(), qos=1, retain=True
+        )
+
+    def _cipher(self, key: str) -> SessionCipher:
+        cipher = self._ciphers.get(key)
+        if cipher is None:
+            cipher = self.key.cipher(key, initiator=False)
+            self._ciphers[key] = cipher
+            if len(self._ciphers) > _CACHE:
+                self._ciphers.popitem(last=False)
+        return cipher
+
+    def _input(self, msg: Message) -> None:
+        pseudonym = msg.topic.rsplit("/", 1)[-1]
+        try:
+            env = Envelope.model_validate_json(msg.payload)
+            if env.k is None:
+                raise CryptoError("input without a key")
+            if time.time() - env.t > self.config.max_age:
+                self.stats.dropped_stale += 1
+                return
+            cipher = self._cipher(env.k)
+            payload = json.loads(cipher.open(env.d, env.c))
+            if not isinstance(payload, dict):
+                raise CryptoError("payload is not a JSON object")
+        except (ValidationError, CryptoError, ValueError):
+            self.stats.dropped_invalid += 1
+            return
+        new = pseudonym not in self._by_pseudonym
+        self._by_pseudonym[pseudonym] = cipher
+        self._by_pseudonym.move_to_end(pseudonym)
+        if len(self._by_pseudonym) > _CACHE:
+            self._by_pseudonym.popitem(last=False)
+        self.stats.requests += 1
+        request = Request(pseudonym, env.c, payload, env.t, new)
+        try:
+            answer = self._handler(request)
+        except Exception as exc:
+            self.stats.handler_errors += 1
+            log.error("%s: handler raised %s", self.name, type(exc).__name__)
+            return
+        if answer is not None:
+            self._send(cipher, pseudonym, env.c, answer)
+
+    def _send(
+        self, cipher: SessionCipher, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
+    ) -> None:
+        plaintext = json.dumps(payload, separators=(",", ":")).encode()
+        env = Envelope(c=correlation_id, t=time.time(), d=cipher.seal(plaintext, correlation_id))
+        self.transport.publish(
+            topics.provider_reply(self.name, pseudonym), env.encode(), self.config.data_qos
+        )
+        self.stats.replies += 1

@@ -1,9 +1,9 @@
 """The LaaS error tree.
 
-    LaasError
-    ├── MapError          a broken HD map (names the feature)
-    ├── TraceError        a bad line in a recorded trace (names the line)
-    └── ConfigError       an invalid engine or scenario configuration
+LaasError
+├── MapError          a broken HD map (names the feature)
+├── TraceError        a bad line in a recorded trace (names the line)
+└── ConfigError       an invalid engine or scenario configuration
 """
 
 from __future__ import annotations

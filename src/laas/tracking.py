@@ -60,6 +60,7 @@ class Track:
         self._kf = KalmanFilter(dim_x=4, dim_z=4)
         self._kf.H = np.eye(4)
         self.t = fix.t
+        self.dt = 0.0
         self.last_fix = fix
         self._start(fix)
 
@@ -81,6 +82,7 @@ class Track:
         self._kf.x = np.array([fix.e, fix.n, *fix.velocity]).reshape(4, 1)
         self._kf.P = r.copy()
         self.t = fix.t
+        self.dt = 0.0
         self.last_fix = fix
 
     def update(self, fix: Fix) -> TrackUpdate:
@@ -95,6 +97,7 @@ class Track:
             return TrackUpdate.RESTARTED
         if not self._config.kalman:
             self._start(fix)
+            self.dt = dt
             return TrackUpdate.ACCEPTED
         # x = F x,  P = F P F' + Q
         f = np.eye(4)
@@ -107,6 +110,7 @@ class Track:
         z = np.array([fix.e, fix.n, *fix.velocity])
         self._kf.update(z, R=self._measurement_noise(fix))
         self.t = fix.t
+        self.dt = dt
         self.last_fix = fix
         return TrackUpdate.ACCEPTED
 

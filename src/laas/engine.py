@@ -1,0 +1,351 @@
+"""The positioning engine: map -> tracks (Kalman) -> segments -> lane filter -> answers.
+
+Pure: no MQTT, no files, no clock of its own. Time comes from the measurements, so
+`laas replay`, `laas evaluate` and the live worker drive the same `Engine` and get the
+same answers. Work per measurement is bounded by the size of the measurement's own
+segment group; no step touches users elsewhere on the map.
+
+Per fix of user u at time t:
+ 1. Kalman-filter the fix into u's track (duplicates and stale fixes are refused).
+ 2. Default mode: subtract the common-error estimate b of u's area (paper mode: b = 0).
+ 3. Locate u's road element; u leaves its old group and joins the new one, keeping
+    its lane belief when the lane count carries over.
+ 4. Run the mode's lane filter over the group, the others' tracks predicted to t.
+ 5. Answer with the position placed on the chosen lane.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from laas.assignment import best_assignment
+from laas.common_error import CommonError, CommonErrorField
+from laas.config import EngineConfig
+from laas.hdmap import HdMap, Segment
+from laas.models import CorrectedPosition, GpsMeasurement
+from laas.paper import JointHypothesisFilter
+from laas.tracking import Fix, Track, TrackUpdate
+from laas.transition import direction_likelihood, lane_transition
+
+__all__ = ["Engine", "EngineStats"]
+
+
+@dataclass
+class EngineStats:
+    """Counters of what the engine did with the fixes it was given."""
+
+    answered: int = 0
+    started: int = 0
+    restarted: int = 0
+    duplicate: int = 0
+    out_of_order: int = 0
+    off_map: int = 0
+    expired: int = 0
+
+
+@dataclass
+class _User:
+    track: Track
+    segment: Segment | None = None
+    belief: np.ndarray | None = None  # default mode: (L,) lane probabilities in `segment`
+
+
+@dataclass
+class _Geometry:
+    """A user's place in a segment's frame at the time of the step."""
+
+    p: np.ndarray  # (2,) filtered position minus the common error, m
+    s: float  # station along the segment
+    d: float  # lateral offset, + to the right
+    offsets: np.ndarray  # (L,) lane centres at s
+    normal: np.ndarray  # (2,) unit normal to the right
+    tangent: np.ndarray  # (2,) unit reference direction
+    lateral_var: float  # n' P n of the track, m^2
+
+
+@dataclass
+class _Group:
+    """The users currently in one segment, and paper mode's joint belief over them."""
+
+    users: set[str] = field(default_factory=set)
+    joint: JointHypothesisFilter | None = None
+
+
+class Engine:
+    """Lane-level positions for many road users on one HD map."""
+
+    def __init__(self, hdmap: HdMap, config: EngineConfig | None = None) -> None:
+        self.map = hdmap
+        self.config = config or EngineConfig()
+        self.stats = EngineStats()
+        self._users: dict[str, _User] = {}
+        self._groups: dict[str, _Group] = {}
+        self._errors = CommonErrorField(
+            self.config.bias_area, self.config.bias_prior, self.config.bias_drift
+        )
+
+    # -- public ----------------------------------------------------------------------------
+
+    @property
+    def users(self) -> int:
+        """How many users have a live track."""
+        return len(self._users)
+
+    def common_errors(self) -> list[CommonError]:
+        """The common-error estimates per area (empty in paper mode)."""
+        return list(self._errors.areas)
+
+    def process(self, user: str, measurement: GpsMeasurement) -> CorrectedPosition | None:
+        """Correct one fix of `user`; None if it was a duplicate or older than the last."""
+        c = self.config
+        e, n = self.map.projection.to_utm(measurement.longitude, measurement.latitude)
+        fix = Fix(
+            t=measurement.timestamp / 1000.0,
+            e=e,
+            n=n,
+            speed=measurement.speed,
+            heading=math.radians(measurement.heading),
+        )
+        state = self._users.get(user)
+        if state is None:
+            state = self._users[user] = _User(Track(c, fix))
+            self.stats.started += 1
+        else:
+            outcome = state.track.update(fix)
+            if outcome is TrackUpdate.DUPLICATE:
+                self.stats.duplicate += 1
+                return None
+            if outcome is TrackUpdate.OUT_OF_ORDER:
+                self.stats.out_of_order += 1
+                return None
+            if outcome is TrackUpdate.RESTARTED:
+                self.stats.restarted += 1
+                self._leave(user, state)
+                state.belief = None
+        t = fix.t
+        area: CommonError | None = None
+        b = np.zeros(2)
+        if c.mode == "default":
+            area = self._errors.at(state.track.position)
+            area.predict(t)
+            b = area.b
+        q = state.track.position - b
+        segment = self.map.locate(float(q[0]), float(q[1]), c.max_map_distance)
+        if segment is None:
+            self._leave(user, state)
+            self.stats.off_map += 1
+            self.stats.answered += 1
+            return self._answer(measurement, q, None, None, 0.0, state, area)
+        if state.segment is None or state.segment.id != segment.id:
+            self._join(user, state, segment)
+        group = self._groups[segment.id]
+        members = self._members(group, user, t)
+        geometry = {v: self._geometry(self._users[v], segment, t, b) for v in members}
+        if c.mode == "paper":
+            lane, probability, point = self._paper_step(user, segment, group, geometry)
+        else:
+            assert area is not None  # default mode always has an area
+            lane, probability, point = self._default_step(user, segment, geometry, area)
+        self.stats.answered += 1
+        return self._answer(measurement, point, segment, lane, probability, state, area)
+
+    def expire(self, now_ms: int) -> list[str]:
+        """Forget users whose last fix is older than `track_timeout`; return them."""
+        now = now_ms / 1000.0
+        gone = [u for u, s in self._users.items() if now - s.track.t > self.config.track_timeout]
+        for user in gone:
+            self.forget(user)
+            self.stats.expired += 1
+        return gone
+
+    def forget(self, user: str) -> None:
+        """Drop a user's track and its place in any group (a rotated pseudonym, say)."""
+        state = self._users.pop(user, None)
+        if state is not None:
+            self._leave(user, state)
+
+    # -- groups ----------------------------------------------------------------------------
+
+    def _join(self, user: str, state: _User, segment: Segment) -> None:
+        carried = self._leave(user, state)
+        if carried is not None and carried.shape[0] != len(segment.lanes):
+            carried = None
+        group = self._groups.setdefault(segment.id, _Group())
+        group.users.add(user)
+        state.segment = segment
+        if self.config.mode == "paper":
+            if group.joint is None:
+                group.joint = JointHypothesisFilter(len(segment.lanes), self.config.max_hypotheses)
+            group.joint.add(user, carried)
+        else:
+            state.belief = carried
+
+    def _leave(self, user: str, state: _User) -> np.ndarray | None:
+        """Take `user` out of its group; return its lane belief there."""
+        segment = state.segment
+        if segment is None:
+            return None
+        state.segment = None
+        group = self._groups.get(segment.id)
+        belief = state.belief
+        if group is not None:
+            group.users.discard(user)
+            if group.joint is not None and user in group.joint:
+                belief = group.joint.remove(user)
+            if not group.users:
+                del self._groups[segment.id]
+        state.belief = None
+        return belief
+
+    def _members(self, group: _Group, user: str, t: float) -> list[str]:
+        """The group's users heard from within `group_timeout`, `user` first."""
+        stale = [
+            v
+            for v in group.users
+            if v != user and t - self._users[v].track.t > self.config.group_timeout
+        ]
+        for v in stale:
+            self._leave(v, self._users[v])
+        return [user, *sorted(v for v in group.users if v != user)]
+
+    def _geometry(self, state: _User, segment: Segment, t: float, b: np.ndarray) -> _Geometry:
+        p = state.track.position_at(t) - b
+        s, d = segment.frame(float(p[0]), float(p[1]))
+        tangent = segment.tangent(s)
+        normal = np.array([tangent[1], -tangent[0]])
+        return _Geometry(
+            p=p,
+            s=s,
+            d=d,
+            offsets=segment.lane_offsets(s),
+            normal=normal,
+            tangent=tangent,
+            lateral_var=float(normal @ state.track.position_cov @ normal),
+        )
+
+    def _prediction(
+        self, state: _User, segment: Segment, g: _Geometry
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The transition matrix and wrong-way factors of a user's own step."""
+        c = self.config
+        v = state.track.velocity
+        transition = lane_transition(
+            g.offsets, float(v @ g.normal), state.track.dt, c.lane_change_rate, c.max_lane_change
+        )
+        directions = tuple(lane.direction for lane in segment.lanes)
+        return transition, direction_likelihood(directions, float(v @ g.tangent))
+
+    # -- the two modes ---------------------------------------------------------------------
+
+    def _paper_step(
+        self, user: str, segment: Segment, group: _Group, geometry: dict[str, _Geometry]
+    ) -> tuple[int, float, np.ndarray]:
+        """Section IV-D: predict and update the joint hypotheses; place u on its lane."""
+        joint = group.joint
+        assert joint is not None  # paper mode groups always have one
+        g_u = geometry[user]
+        transition, direction = self._prediction(self._users[user], segment, g_u)
+        # c_v[l] = p_v + (o_l - d_v) n_v: the filtered fix moved across onto lane l.
+        placed = {v: g.p + np.outer(g.offsets - g.d, g.normal) for v, g in geometry.items()}
+        positions = {v: g.p for v, g in geometry.items()}
+        base = 2.0 * self.config.sigma_lane**2 + g_u.lateral_var
+        pair_var = {v: base + g.lateral_var for v, g in geometry.items()}
+        lane, probability = joint.step(user, transition, direction, placed, positions, pair_var)
+        return lane, probability, placed[user][lane]
+
+    def _default_step(
+        self, user: str, segment: Segment, geometry: dict[str, _Geometry], area: CommonError
+    ) -> tuple[int, float, np.ndarray]:
+        """Joint assignment with a shared residual offset, then the common-error update."""
+        c = self.config
+        state = self._users[user]
+        g_u = geometry[user]
+        lanes = len(segment.lanes)
+        transition, direction = self._prediction(state, segment, g_u)
+        prior = state.belief if state.belief is not None else np.full(lanes, 1.0 / lanes)
+        prior = (prior @ transition) * direction
+        prior /= prior.sum()
+        users = list(geometry)
+        beliefs = [prior] + [
+            b if (b := self._users[v].belief) is not None else np.full(lanes, 1.0 / lanes)
+            for v in users[1:]
+        ]
+        gs = [geometry[v] for v in users]
+        sigma = np.sqrt([c.sigma_lane**2 + g.lateral_var for g in gs])
+        tau = max(area.sigma_along(g_u.normal), 1e-3)
+        with np.errstate(divide="ignore"):
+            log_prior = np.log(np.array(beliefs))
+        result = best_assignment(
+            np.array([g.d for g in gs]),
+            np.array([g.offsets for g in gs]),
+            sigma,
+            log_prior,
+            0.0,
+            tau,
+        )
+        lane = int(result.lanes[0])
+        posterior = result.marginals[0]
+        state.belief = posterior
+        # The common error, observed across u's lane: z = n.(p - c) = n.b + v with the
+        # lane ambiguity moment-matched into r.
+        residual = g_u.d - g_u.offsets[lane]
+        ambiguity = float(posterior @ (g_u.offsets - g_u.offsets[lane]) ** 2)
+        z = residual + float(g_u.normal @ area.b)
+        area.update(g_u.normal, z, sigma[0] ** 2 + ambiguity)
+        # Place u: its re-corrected lateral offset fused with the lane centre,
+        #   d = (o / s_lane^2 + d_m / s_m^2) / (1 / s_lane^2 + 1 / s_m^2).
+        p = state.track.position - area.b
+        s, d = segment.frame(float(p[0]), float(p[1]))
+        o = float(segment.lane_offsets(s)[lane])
+        var_m = g_u.lateral_var + float(g_u.normal @ area.P @ g_u.normal)
+        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
+        fused = (w_lane * o + w_m * d) / (w_lane + w_m)
+        return lane, float(posterior[lane]), np.array(segment.point(s, fused))
+
+    # -- answers ---------------------------------------------------------------------------
+
+    def _answer(
+        self,
+        measurement: GpsMeasurement,
+        point: np.ndarray,
+        segment: Segment | None,
+        lane: int | None,
+        probability: float,
+        state: _User,
+        area: CommonError | None,
+    ) -> CorrectedPosition:
+        c = self.config
+        cov = state.track.position_cov + (area.P if area is not None else np.zeros((2, 2)))
+        if area is None:  # paper mode: the common error is never estimated
+            cov = cov + np.eye(2) * c.bias_prior**2
+        if segment is not None and lane is not None:
+            s, _ = segment.frame(float(point[0]), float(point[1]))
+            tangent = segment.tangent(s)
+            normal = np.array([tangent[1], -tangent[0]])
+            along = math.sqrt(float(tangent @ cov @ tangent))
+            if area is not None:
+                var_m = float(normal @ cov @ normal)
+                cross = math.sqrt(1.0 / (1.0 / c.sigma_lane**2 + 1.0 / max(var_m, 1e-6)))
+            else:
+                cross = c.sigma_lane
+        else:
+            eig = np.linalg.eigvalsh(cov)
+            along = cross = math.sqrt(max(float(eig[-1]), 0.0))
+        lon, lat = self.map.projection.to_wgs84(float(point[0]), float(point[1]))
+        return CorrectedPosition(
+            timestamp=measurement.timestamp,
+            latitude=min(max(lat, -90.0), 90.0),
+            longitude=min(max(lon, -180.0), 180.0),
+            segment=segment.id if segment is not None else None,
+            lane=lane,
+            lane_type=segment.lanes[lane].type
+            if segment is not None and lane is not None
+            else None,
+            probability=min(max(probability, 0.0), 1.0),
+            accuracy=math.hypot(cross, along),
+            accuracy_cross=cross,
+            accuracy_along=along,
+        )

@@ -1,0 +1,120 @@
+"""Paper mode: the discrete Bayes filter over joint lane hypotheses (section IV-D).
+
+For one road element with L lanes and users v_1..v_N, the state is the set H of all
+L^N joint assignments h = (v_1 -> l_1, ..., v_N -> l_N), held as a tensor of shape
+(L,) * N whose axis k is user k's lane. The belief starts uniform. When user u reports:
+
+  prediction   p(h) <- sum_{h'} p(h') T_u[h'_u, h_u] * D_u[h_u]
+               (T_u from its heading against the lanes' direction, D_u its wrong-way
+               factor; only u's axis moves, the others have not reported)
+  update       p(h) <- p(h) * prod_{j != u} exp(-|r_h(u,j) - r(u,j)|^2 / (4 s^2))
+               r(u,j) = p_u - p_j  the relative position of the Kalman-filtered fixes,
+               r_h(u,j) = c_u[h_u] - c_j[h_j] the same with both placed on their
+               assigned lanes, s^2 = 2 (sigma_lane^2 + sigma_kf^2) per pair; each pair
+               is updated by both of its users, hence 4 s^2 rather than 2 s^2.
+
+The winner is argmax_h p(h); a user's answer is its lane in the winner and the
+marginal probability of that lane. A user who joins adds a uniform axis; one who
+leaves is summed out, so what is known about the others is kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["JointHypothesisFilter"]
+
+
+class JointHypothesisFilter:
+    """The joint belief of one segment's users. Users past `max_hypotheses` are solo."""
+
+    def __init__(self, lanes: int, max_hypotheses: int) -> None:
+        self.lanes = lanes
+        self.max_hypotheses = max_hypotheses
+        self.users: list[str] = []
+        self.belief = np.ones(())
+        self.solo: dict[str, np.ndarray] = {}
+
+    def __contains__(self, user: str) -> bool:
+        return user in self.users or user in self.solo
+
+    @property
+    def hypotheses(self) -> int:
+        """|H| = L^N for the users in the joint belief."""
+        return int(self.belief.size)
+
+    def add(self, user: str, prior: np.ndarray | None = None) -> None:
+        """Give `user` an axis (uniform, or `prior`), or a solo belief past the cap."""
+        p = np.full(self.lanes, 1.0 / self.lanes) if prior is None else prior / prior.sum()
+        if self.belief.size * self.lanes > self.max_hypotheses:
+            self.solo[user] = p
+            return
+        self.users.append(user)
+        self.belief = np.multiply.outer(self.belief, p)
+
+    def remove(self, user: str) -> np.ndarray:
+        """Sum `user` out of the belief and return its marginal lane distribution."""
+        if user in self.solo:
+            return self.solo.pop(user)
+        k = self.users.index(user)
+        marginal = self.marginal(user)
+        self.belief = self.belief.sum(axis=k)
+        self.users.pop(k)
+        return marginal
+
+    def marginal(self, user: str) -> np.ndarray:
+        """(L,) P(user on lane l)."""
+        if user in self.solo:
+            return self.solo[user]
+        k = self.users.index(user)
+        axes = tuple(i for i in range(self.belief.ndim) if i != k)
+        m: np.ndarray = self.belief.sum(axis=axes)
+        return m
+
+    def step(
+        self,
+        user: str,
+        transition: np.ndarray,
+        direction: np.ndarray,
+        placed: dict[str, np.ndarray],
+        positions: dict[str, np.ndarray],
+        pair_var: dict[str, float],
+    ) -> tuple[int, float]:
+        """Predict and update on `user`'s fix; return its lane in the winner and P(lane).
+
+        placed[v]: (L, 2) the user's fix placed on each lane; positions[v]: (2,) the
+        filtered fix; pair_var[v]: s^2 for the pair (user, v). Users of the joint belief
+        missing from `placed` are not compared this step.
+        """
+        if user in self.solo:
+            p = (self.solo[user] @ transition) * direction
+            self.solo[user] = p / p.sum()
+            lane = int(np.argmax(self.solo[user]))
+            return lane, float(self.solo[user][lane])
+        k = self.users.index(user)
+        # Prediction along u's axis: p(.., l, ..) = sum_l' p(.., l', ..) T[l', l] D[l]
+        b = np.moveaxis(np.tensordot(self.belief, transition, axes=([k], [0])), -1, k)
+        shape = [1] * b.ndim
+        shape[k] = self.lanes
+        b = b * direction.reshape(shape)
+        # Update with the relative positions to every other joint user.
+        log_like = np.zeros(b.shape)
+        for j, other in enumerate(self.users):
+            if other == user or other not in placed:
+                continue
+            r = positions[user] - positions[other]
+            r_h = placed[user][:, None, :] - placed[other][None, :, :]  # (L, L, 2)
+            cost = ((r_h - r) ** 2).sum(axis=2) / (4.0 * pair_var[other])
+            pair_shape = [1] * b.ndim
+            pair_shape[k] = pair_shape[j] = self.lanes
+            pair = cost if k < j else cost.T
+            log_like = log_like - pair.reshape(pair_shape)
+        b = b * np.exp(log_like - log_like.max())
+        total = b.sum()
+        if not np.isfinite(total) or total <= 0.0:
+            b = np.exp(log_like - log_like.max())  # the evidence overrules a dead belief
+            total = b.sum()
+        self.belief = b / total
+        winner = np.unravel_index(int(np.argmax(self.belief)), self.belief.shape)
+        lane = int(winner[k])
+        return lane, float(self.marginal(user)[lane])

@@ -201,8 +201,7 @@ class _Frame:
                 hi = mid
         sol = self._solve(lo, x, y)
         if sol is None:  # far from the reference, where normal lines cross: search everything
-            out = self.frame_array(np.array([[x, y]]))
-            return float(out[0, 0]), float(out[0, 1])
+            return self._frame_slow(x, y)
         u, d = sol
         return self._cum[lo] + u * self._lens[lo], d
 
@@ -243,16 +242,41 @@ class _Frame:
         return out
 
     def _frame_chunk(self, xy: FloatArray) -> FloatArray:
-        """Every quad's solution for every point; keep the valid one with the smallest |d|."""
-        q = xy[:, None, :] - self.p[None, :-1, :]  # (k, n, 2)
-        v = self.v[None]
-        m0 = self.m[None, :-1]
-        dm = (self.m[1:] - self.m[:-1])[None]
+        """The vectorised twin of :meth:`frame`: same quad choice, same extrapolation."""
+        n = self.pieces
+        # side of every vertex normal line, (k, n+1); the quad is the last line passed
+        side = (xy[:, 0, None] - self.p[None, :, 0]) * self.fwd[None, :, 0] + (
+            xy[:, 1, None] - self.p[None, :, 1]
+        ) * self.fwd[None, :, 1]
+        before = side[:, 0] < 0.0
+        after = ~before & (side[:, -1] >= 0.0)
+        i = np.clip(np.count_nonzero(side >= 0.0, axis=1) - 1, 0, n - 1)
+        s, d = self._solve_rows(xy, i[:, None])
+        inside = ~before & ~after
+        lost = inside & np.isnan(s)
+        if np.any(lost):  # far from the reference, where normal lines cross
+            s[lost], d[lost] = self._search_all(xy[lost])
+        t0, t1 = self.t[0], self.t[-1]
+        w0 = xy[before] - self.p[0]
+        s[before], d[before] = w0 @ t0, w0[:, 0] * t0[1] - w0[:, 1] * t0[0]
+        wn = xy[after] - self.p[-1]
+        s[after], d[after] = self.length + wn @ t1, wn[:, 0] * t1[1] - wn[:, 1] * t1[0]
+        return np.column_stack((s, d))
+
+    def _solve_rows(self, xy: FloatArray, i: npt.NDArray[np.intp]) -> tuple[FloatArray, FloatArray]:
+        """Solve the quad equation of :meth:`_solve` for point k in pieces i[k, :].
+
+        Returns (s, d) of the valid solution with the smallest |d| per point (NaN if none).
+        """
+        q = xy[:, None, :] - self.p[i]  # (k, c, 2)
+        v = self.v[i]
+        m0 = self.m[i]
+        dm = self.m[i + 1] - m0
 
         def cross(a: FloatArray, b: FloatArray) -> FloatArray:
             return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
-        a = np.broadcast_to(-cross(v, dm), q.shape[:2])
+        a = -cross(v, dm)
         b = cross(q, dm) - cross(v, m0)
         c = cross(q, m0)
         disc = b * b - 4.0 * a * c
@@ -261,6 +285,7 @@ class _Frame:
             lin = a == 0.0
             r1 = np.where(lin, -c / b, h / a)
             r2 = np.where(lin, np.nan, c / h)
+        rows = np.arange(len(xy))
         best_s = np.full(len(xy), np.nan)
         best_d = np.full(len(xy), np.inf)
         for u in (r1, r2):
@@ -268,27 +293,40 @@ class _Frame:
             uc = np.clip(np.where(ok, u, 0.0), 0.0, 1.0)
             nv = m0 + uc[..., None] * dm
             r = q - uc[..., None] * v
-            d = np.sum(r * nv, axis=-1) / np.sum(nv * nv, axis=-1)
-            d = np.where(ok, d, np.inf)
+            d = np.where(ok, np.sum(r * nv, axis=-1) / np.sum(nv * nv, axis=-1), np.inf)
             j = np.argmin(np.abs(d), axis=1)
-            rows = np.arange(len(xy))
             dj = d[rows, j]
             better = np.abs(dj) < np.abs(best_d)
+            ij = i[rows, j]
             best_d = np.where(better, dj, best_d)
-            best_s = np.where(better, self.cum[j] + uc[rows, j] * self.lens[j], best_s)
-        # extrapolation before the start and after the end (same rules as the scalar path)
-        w0 = xy - self.p[0]
-        before = w0 @ self.fwd[0] < 0.0
-        wn = xy - self.p[-1]
-        after = wn @ self.fwd[-1] >= 0.0
-        t0, t1 = self.t[0], self.t[-1]
-        s0, d0 = w0 @ t0, w0[:, 0] * t0[1] - w0[:, 1] * t0[0]
-        s1, d1 = self.length + wn @ t1, wn[:, 0] * t1[1] - wn[:, 1] * t1[0]
-        for mask, s_e, d_e in ((before, s0, d0), (after, s1, d1)):
-            take = mask & ~(np.abs(best_d) < np.abs(d_e))
-            best_s = np.where(take, s_e, best_s)
-            best_d = np.where(take, d_e, best_d)
-        return np.column_stack((best_s, best_d))
+            best_s = np.where(better, self.cum[ij] + uc[rows, j] * self.lens[ij], best_s)
+        best_d[np.isnan(best_s)] = np.nan
+        return best_s, best_d
+
+    def _search_all(self, xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Try every quad; where none has a solution, fall back to the nearest point."""
+        every = np.broadcast_to(np.arange(self.pieces), (len(xy), self.pieces))
+        s, d = self._solve_rows(xy, every)
+        none = np.isnan(s)
+        if np.any(none):
+            s[none], d[none] = self._nearest(xy[none])
+        return s, d
+
+    def _nearest(self, xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Plain nearest-point projection: s of the foot, d = signed distance (+ right)."""
+        q = xy[:, None, :] - self.p[None, :-1, :]
+        u = np.clip(np.sum(q * self.v[None], axis=-1) / (self.lens**2)[None], 0.0, 1.0)
+        r = q - u[..., None] * self.v[None]
+        dist = np.hypot(r[..., 0], r[..., 1])
+        j = np.argmin(dist, axis=1)
+        rows = np.arange(len(xy))
+        sign = np.where(np.sum(r[rows, j] * self.n[j], axis=-1) < 0.0, -1.0, 1.0)
+        return self.cum[j] + u[rows, j] * self.lens[j], sign * dist[rows, j]
+
+    def _frame_slow(self, x: float, y: float) -> tuple[float, float]:
+        """The scalar fallback: every quad, then the nearest point."""
+        s, d = self._search_all(np.array([[x, y]]))
+        return float(s[0]), float(d[0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -308,7 +346,6 @@ class Segment:
         "_lanes",
         "_left",
         "_reference",
-        "_right",
         "_successors",
     )
 
@@ -343,24 +380,8 @@ class Segment:
         self._lane_samples = tuple(samples)
         self._lane_d = table
         self._left = -ordered[0].width / 2.0
-        self._right = table[:, -1] + ordered[-1].width / 2.0
 
-        # The surface: lane centre lines buffered by half their width, flat caps.
-        parts = [
-            shapely.buffer(lane.centerline, lane.width / 2.0, cap_style="flat") for lane in ordered
-        ]
-        area = shapely.union_all(parts)
-        if not isinstance(area, Polygon) or len(area.interiors) > 0:
-            # small gaps between lanes (tolerated by validation): close them morphologically
-            gap = 0.75
-            closed = shapely.buffer(
-                shapely.buffer(area, gap, join_style="mitre"), -gap, join_style="mitre"
-            )
-            if isinstance(closed, Polygon) and not closed.is_empty:
-                area = Polygon(closed.exterior)
-        if not isinstance(area, Polygon):
-            raise MapError(f"segment {id!r}: the lanes do not form one connected surface")
-        self._area = area
+        self._area: Polygon | None = None
 
     # -- attributes --------------------------------------------------------------------------
 
@@ -383,7 +404,31 @@ class Segment:
 
     @property
     def area(self) -> Polygon:
+        """The element's surface: lane centre lines buffered by half their width, flat caps.
+
+        Built on first use (the loader validates the lanes first, then builds it).
+        """
+        if self._area is None:
+            self._area = self._build_area()
         return self._area
+
+    def _build_area(self) -> Polygon:
+        ordered = self._lanes
+        parts = [
+            shapely.buffer(lane.centerline, lane.width / 2.0, cap_style="flat") for lane in ordered
+        ]
+        area = shapely.union_all(parts)
+        if not isinstance(area, Polygon) or len(area.interiors) > 0:
+            # small gaps between lanes (tolerated by validation): close them morphologically
+            gap = 0.75
+            closed = shapely.buffer(
+                shapely.buffer(area, gap, join_style="mitre"), -gap, join_style="mitre"
+            )
+            if isinstance(closed, Polygon) and not closed.is_empty:
+                area = Polygon(closed.exterior)
+        if not isinstance(area, Polygon):
+            raise MapError(f"segment {self._id!r}: the lanes do not form one connected surface")
+        return area
 
     @property
     def length(self) -> float:
@@ -772,6 +817,10 @@ def _make_segment(
     except MapError as exc:
         raise MapError(f"{_where(source, ref.feature, seg_id)}: {exc}") from exc
     _check_side_by_side(source, seg, raws)
+    try:
+        _ = seg.area
+    except MapError as exc:
+        raise MapError(f"{_where(source, ref.feature, seg_id)}: {exc}") from exc
     return seg
 
 

@@ -1,0 +1,7 @@
+"""Fixtures for the LDM tests: real brokers (embedded amqtt and Mosquitto), no mocks."""
+
+from __future__ import annotations
+
+from ldm.pytest_plugin import broker_factory, broker_kind, mqtt_broker
+
+__all__ = ["broker_factory", "broker_kind", "mqtt_broker"]

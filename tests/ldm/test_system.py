@@ -1,0 +1,230 @@
+"""The whole LDM over real brokers: discovery, sessions, encryption, rotation, privacy.
+
+Every test runs on the embedded amqtt broker and on Mosquitto (``broker_kind``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import Future
+from typing import Any
+
+import pytest
+
+from ldm import Participant, RequestTimeout, ServiceNotFound
+from ldm.config import BrokerSettings
+from ldm.messages import Envelope, ServiceList
+from ldm.testing import wait_for
+from ldm.transport import Connected, Message, Transport
+
+from .deployment import FAST, Deployment, Sniffer, deploy, has_service, lacks_service
+
+PLAINTEXT = "PLAINTEXT-MARKER-4711"
+CLIENTS = [("alice-car-7Q", "alice-user"), ("bob-truck-3Z", "bob-user"), ("carol-bike-9K", None)]
+
+
+@pytest.fixture
+def deployment(broker_factory):
+    d = deploy(broker_factory)
+    yield d
+    d.close()
+
+
+def stream(
+    session, tag: str, count: int, interval: float
+) -> list[tuple[dict[str, Any], Future[dict[str, Any]]]]:
+    """Pipeline ``count`` requests, one every ``interval`` s, without waiting for replies."""
+    sent = []
+    for i in range(count):
+        payload = {"secret": PLAINTEXT, "who": tag, "i": i}
+        sent.append((payload, session.submit(payload)))
+        time.sleep(interval)
+    return sent
+
+
+def test_full_exchange_across_three_brokers(deployment: Deployment) -> None:
+    d = deployment
+    participants = [d.participant(cid, user) for cid, user in CLIENTS]
+
+    # Discovery: the retained list reaches each participant at once, with the schemas.
+    for p in participants:
+        d.wait_listed(p)
+    echo = next(s for s in participants[0].services() if s.name == "echo")
+    assert echo.version == "1.0" and echo.output_schema["type"] == "object"
+    assert len(echo.public_key) == 44
+
+    # Sessions, then encrypted request-response while pseudonyms rotate (period 0.5 s).
+    sessions = [p.open("echo") for p in participants]
+    assert sessions[0].grant.rotation_period == FAST["rotation_period"]
+    assert sessions[0].grant.input_topic.startswith(f"ldm/p/{CLIENTS[0][0]}/")
+    streams = [stream(s, cid, 12, 0.0) for s, (cid, _) in zip(sessions, CLIENTS, strict=True)]
+    for sent in streams:
+        for payload, future in sent:
+            assert future.result(5) == {"echo": payload}
+    t_end = time.time() + 2.0
+    sent_all: list[tuple[dict[str, Any], Future[dict[str, Any]]]] = []
+    while time.time() < t_end:  # 3 participants, a request each every 20 ms, for 2 s
+        for s, (cid, _) in zip(sessions, CLIENTS, strict=True):
+            sent_all.extend(stream(s, cid, 1, 0.0))
+        time.sleep(0.02)
+    for payload, future in sent_all:
+        assert future.result(5) == {"echo": payload}, "a reply was lost or altered"
+    for s in sessions:
+        assert s.rotations >= 2, "pseudonyms should rotate every 0.5 s"
+    assert d.user_core.stats.rotations >= 6
+    # Each rotation shows up at the service as a brand-new pseudonym, never a client id.
+    seen = d.echo.pseudonyms()
+    assert len(seen) >= 3 * 3
+    assert not seen & {cid for cid, _ in CLIENTS}
+
+    # Idle participants are dropped by the core, with no log-off message.
+    assert d.user_core.session_count == 3
+    assert wait_for(lambda: d.user_core.session_count == 0, FAST["idle_timeout"] + 3)
+    assert d.user_core.stats.sessions_expired >= 3
+    # ... and a participant that comes back gets its session again transparently.
+    assert sessions[0].request({"back": True}, timeout=5) == {"echo": {"back": True}}
+
+    # A provider that leaves disappears from every list.
+    d.provider.stop()
+    assert wait_for(lambda: not d.user_core.services and not d.service_core.services, 5)
+    for p in participants:
+        assert wait_for(lacks_service(p, "echo"), 5)
+    with pytest.raises(ServiceNotFound):
+        participants[0].open("echo", timeout=3)
+
+    check_privacy(d, participants)
+
+
+def check_privacy(d: Deployment, participants: list[Participant]) -> None:
+    """Nothing on the backbone or service-cluster broker names or reveals a participant."""
+    forbidden = [cid for cid, _ in CLIENTS] + [u for _, u in CLIENTS if u] + [PLAINTEXT]
+    for sniffer in d.sniffers:
+        messages = sniffer.snapshot()
+        data = [m for m in messages if "/in/" in m.topic or "/out/" in m.topic]
+        assert len(data) > 50, f"{sniffer.transport.name}: sniffer saw too little to judge"
+        for m in messages:
+            blob = m.topic.encode() + b" " + m.payload
+            for word in forbidden:
+                assert word.encode() not in blob, f"{word!r} leaked on {m.topic}"
+        # Unlinkable rotation: one key per pseudonym and one pseudonym per key.
+        inputs = [m for m in data if m.topic.startswith("ldm/svc/echo/in/")]
+        pairs = {
+            (m.topic.rsplit("/", 1)[1], Envelope.model_validate_json(m.payload).k) for m in inputs
+        }
+        if inputs:
+            assert len({p for p, _ in pairs}) == len(pairs) == len({k for _, k in pairs})
+    assert {p.client_id for p in participants} == {cid for cid, _ in CLIENTS}
+
+
+def test_service_list_is_retained_qos1(deployment: Deployment, broker_kind) -> None:
+    got: list[Message | Connected] = []
+    p = deployment.participant("late-joiner")
+    deployment.wait_listed(p)
+    watcher = Transport(
+        BrokerSettings(url=deployment.user.url), client_id="watcher", sink=got.append
+    )
+    watcher.subscribe("ldm/services", 1)
+    watcher.start(timeout=5)
+    try:
+        assert wait_for(lambda: any(isinstance(m, Message) for m in got), 5)
+        msg = next(m for m in got if isinstance(m, Message))
+        assert msg.retain
+        # amqtt 0.12 re-delivers retained messages at QoS 0 whatever they were sent with.
+        assert msg.qos == (1 if broker_kind == "mosquitto" else msg.qos)
+        assert [s.name for s in ServiceList.model_validate_json(msg.payload).services] == ["echo"]
+    finally:
+        watcher.stop()
+
+
+def test_provider_that_vanishes_is_dropped_by_will_and_by_ttl(deployment: Deployment) -> None:
+    d = deployment
+    p = d.participant("dana-car-1")
+    d.wait_listed(p)
+    d.provider.kill()  # no goodbye: the broker publishes the provider's last will
+    assert wait_for(lacks_service(p, "echo"), 5)
+
+    # A provider that stays connected but stops re-announcing expires after the TTL.
+    from .deployment import EchoService, echo_provider
+
+    silent = echo_provider(d.service.url, EchoService())
+    assert wait_for(has_service(p, "echo"), 5)
+    silent.stop_worker()  # no more announcements, connection kept
+    start = time.monotonic()
+    assert wait_for(lacks_service(p, "echo"), FAST["service_ttl"] + 3)
+    assert time.monotonic() - start >= FAST["service_ttl"] - 0.6
+    silent.transport.stop()
+
+
+def test_stale_input_is_dropped_not_delivered(deployment: Deployment) -> None:
+    d = deployment
+    p = d.participant("eve-car-2")
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"fresh": 1}) == {"echo": {"fresh": 1}}
+    # Forge an envelope that is older than max_age: the user core must drop it.
+    keys = session._keys
+    old = time.time() - FAST["max_age"] - 1
+    env = Envelope(c="stale1", t=old, k=keys.pair.public, d=keys.cipher.seal(b"{}", "stale1"))
+    before = d.user_core.stats.dropped_stale
+    p.transport.publish(session.grant.input_topic, env.encode(), qos=1)
+    assert wait_for(lambda: d.user_core.stats.dropped_stale == before + 1, 3)
+    assert d.echo.requests[-1].payload == {"fresh": 1}
+
+
+def test_unknown_service_and_timeout_errors(deployment: Deployment) -> None:
+    p = deployment.participant("frank-car-3")
+    deployment.wait_listed(p)
+    with pytest.raises(ServiceNotFound, match="no service 'nope'"):
+        p.open("nope", timeout=3)
+    session = p.open("echo")
+    deployment.provider.kill()
+    assert wait_for(lacks_service(p, "echo"), 5)
+    with pytest.raises(ServiceNotFound, match="'echo' is gone"):
+        session.request({"x": 1}, timeout=3)
+    with pytest.raises(RequestTimeout):
+        session.request({"x": 1}, timeout=0.0)
+
+
+def test_edge_deployment_two_brokers(broker_factory) -> None:
+    """A user-cluster broker bridged straight to the service-cluster broker (no third one)."""
+    d = deploy(broker_factory, backbone_is_service_broker=True)
+    try:
+        p = d.participant("gina-car-4", "gina-user")
+        d.wait_listed(p)
+        session = p.open("echo")
+        sent = stream(session, "gina", 60, 0.01)
+        for payload, future in sent:
+            assert future.result(5) == {"echo": payload}
+        assert session.rotations >= 1
+        blob = b"".join(m.topic.encode() + m.payload for m in d.sniffers[0].snapshot())
+        assert b"ldm/svc/echo/in/" in blob
+        for word in ("gina-car-4", "gina-user", PLAINTEXT):
+            assert word.encode() not in blob
+    finally:
+        d.close()
+
+
+def test_payload_on_the_wire_is_ciphertext(deployment: Deployment) -> None:
+    d = deployment
+    spy = Sniffer(d.user.url, "user")
+    try:
+        p = d.participant("hal-car-5")
+        d.wait_listed(p)
+        session = p.open("echo")
+        assert session.request({"secret": PLAINTEXT}) == {"echo": {"secret": PLAINTEXT}}
+
+        def data() -> list[Message]:
+            return [
+                m
+                for m in spy.snapshot()
+                if m.topic.startswith("ldm/p/hal-car-5/") and "/data/" in m.topic
+            ]
+
+        # One input, one reply: the core sees who, not what.
+        assert wait_for(lambda: len(data()) == 2, 3)
+        for m in data():
+            assert PLAINTEXT.encode() not in m.payload
+            assert set(json.loads(m.payload)) <= {"c", "t", "k", "d"}
+    finally:
+        spy.stop()

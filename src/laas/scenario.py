@@ -23,11 +23,13 @@ from laas.hdmap import HdMap, Segment
 from laas.models import GpsMeasurement
 
 __all__ = [
+    "SCENARIOS",
     "ErrorModel",
     "Scenario",
     "SimulatedFix",
     "Trace",
     "UserPlan",
+    "get_scenario",
     "hamburg_scenario",
     "simulate",
 ]
@@ -240,3 +242,17 @@ def hamburg_scenario() -> Scenario:
             ),
         ),
     )
+
+
+SCENARIOS = {"messe-hamburg": hamburg_scenario}
+"""The built-in scenarios by name."""
+
+
+def get_scenario(name: str) -> Scenario:
+    """A built-in scenario by name; the error lists the names there are."""
+    try:
+        return SCENARIOS[name]()
+    except KeyError:
+        raise ConfigError(
+            f"unknown scenario {name!r}; choose one of {', '.join(sorted(SCENARIOS))}"
+        ) from None

@@ -1,0 +1,212 @@
+"""The `laas` command line: thin faces over the library (no logic lives only here)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from laas.config import EngineConfig, Mode
+from laas.errors import LaasError, TraceError
+from laas.hdmap import HdMap
+
+__all__ = ["main"]
+
+
+def _engine_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mode", choices=["default", "paper"], default="default", help="lane filter")
+    p.add_argument("--no-kalman", action="store_true", help="use the raw fixes, unsmoothed")
+    p.add_argument("--sigma-pos", type=float, default=1.0, help="receiver position noise, m")
+    p.add_argument("--sigma-vel", type=float, default=0.25, help="receiver speed noise, m/s")
+    p.add_argument("--sigma-heading", type=float, default=0.5, help="heading noise, degrees")
+
+
+def _engine_config(a: argparse.Namespace) -> EngineConfig:
+    return EngineConfig(
+        mode=a.mode,
+        kalman=not a.no_kalman,
+        sigma_pos=a.sigma_pos,
+        sigma_vel=a.sigma_vel,
+        sigma_heading=a.sigma_heading,
+    )
+
+
+def _cmd_replay(a: argparse.Namespace) -> int:
+    from laas.replay import replay
+    from laas.trace import format_answer, read_trace
+
+    hdmap = HdMap.load(a.map)
+    errors = 0
+
+    def on_error(error: TraceError) -> None:
+        nonlocal errors
+        errors += 1
+        print(f"laas replay: {error}", file=sys.stderr)
+
+    source = sys.stdin if a.trace == "-" else open(a.trace, encoding="utf-8")  # noqa: SIM115
+    out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
+    answered = 0
+    try:
+        name = "<stdin>" if a.trace == "-" else a.trace
+        for result in replay(hdmap, read_trace(source, name), _engine_config(a), on_error):
+            out.write(format_answer(result.user, result.answer) + "\n")
+            answered += 1
+    finally:
+        if source is not sys.stdin:
+            source.close()
+        if out is not sys.stdout:
+            out.close()
+    print(f"laas replay: {answered} answered, {errors} lines skipped", file=sys.stderr)
+    return 0 if answered or not errors else 1
+
+
+def _cmd_scenario(a: argparse.Namespace) -> int:
+    from laas.scenario import ErrorModel, get_scenario, simulate
+    from laas.trace import format_measurement
+
+    scenario = get_scenario(a.scenario)
+    hdmap = HdMap.load(scenario.map)
+    errors = ErrorModel(sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
+    trace = simulate(hdmap, scenario, errors, a.seed)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "trace.jsonl", "w", encoding="utf-8") as f:
+        for fix in trace.fixes:
+            f.write(format_measurement(fix.user, fix.measurement) + "\n")
+    with open(out / "truth.jsonl", "w", encoding="utf-8") as f:
+        for fix in trace.fixes:
+            row = {
+                "user": fix.user,
+                "kind": fix.kind,
+                "timestamp": fix.measurement.timestamp,
+                "easting": fix.true_e,
+                "northing": fix.true_n,
+                "epsg": hdmap.projection.epsg,
+                "segment": fix.segment,
+                "lane": fix.lane,
+            }
+            f.write(json.dumps(row) + "\n")
+    print(f"wrote {len(trace.fixes)} fixes to {out}/trace.jsonl and the truth to {out}/truth.jsonl")
+    return 0
+
+
+def _cmd_evaluate(a: argparse.Namespace) -> int:
+    from laas.evaluate import evaluate, format_table, print_progress
+    from laas.scenario import get_scenario
+
+    scenario = get_scenario(a.scenario)
+    modes: tuple[Mode, ...] = ("paper", "default") if a.mode == "both" else (a.mode,)
+    rows = evaluate(
+        scenario,
+        modes=modes,
+        runs=a.runs,
+        workers=a.workers,
+        progress=None if a.json else print_progress,
+    )
+    if a.json:
+        print(json.dumps([r.as_dict() for r in rows], indent=1))
+    else:
+        print(f"scenario {scenario.name}: {a.runs} seeded runs per row (seeds 0..{a.runs - 1})")
+        print(format_table(rows))
+    if a.plot:
+        _plots(scenario.name, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
+    return 0
+
+
+def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
+    from laas.engine import Engine
+    from laas.plots import plot_lanes_over_time, plot_traces
+    from laas.scenario import ErrorModel, get_scenario, simulate
+
+    scenario = get_scenario(name)
+    hdmap = HdMap.load(scenario.map)
+    trace = simulate(hdmap, scenario, ErrorModel(sigma_pos=sigma_pos, sigma_vel=sigma_vel), seed)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
+    for mode in ("paper", "default"):
+        engine = Engine(hdmap, EngineConfig(mode=mode, sigma_pos=sigma_pos, sigma_vel=sigma_vel))
+        answers = [engine.process(f.user, f.measurement) for f in trace.fixes]
+        paths.append(plot_lanes_over_time(trace, answers, out / f"{name}-lanes-{mode}.png"))
+    for p in paths:
+        print(f"wrote {p}")
+    return paths
+
+
+def _cmd_plot(a: argparse.Namespace) -> int:
+    _plots(a.scenario, Path(a.out), a.seed, a.sigma_pos, a.sigma_vel)
+    return 0
+
+
+def _cmd_demo(a: argparse.Namespace) -> int:
+    from laas.demo import run_demo
+
+    return run_demo(out=Path(a.out), runs=a.runs)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="laas", description="Location as a Service: lane-level positioning at the edge."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="run the paper's scenario end to end and show the results")
+    p.add_argument("--out", default="out", help="folder for the pictures (default: out)")
+    p.add_argument("--runs", type=int, default=5, help="seeded runs per row of the table")
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
+    p.add_argument("--map", required=True, help="GeoJSON lane map")
+    p.add_argument("trace", help="trace file, JSON Lines with a `user` field; - for stdin")
+    p.add_argument("--out", help="output file (default: stdout)")
+    _engine_args(p)
+    p.set_defaults(func=_cmd_replay)
+
+    p = sub.add_parser("evaluate", help="the paper's Table I, both modes, seeded runs")
+    p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
+    p.add_argument("--runs", type=int, default=20, help="seeded runs per configuration")
+    p.add_argument("--mode", choices=["both", "default", "paper"], default="both")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--plot", metavar="DIR", help="also write the pictures to DIR")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("scenario", help="write a simulated trace and its ground truth")
+    p.add_argument("--scenario", default="messe-hamburg")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma-pos", type=float, default=1.0)
+    p.add_argument("--sigma-vel", type=float, default=0.25)
+    p.add_argument("--out", required=True, help="folder for trace.jsonl and truth.jsonl")
+    p.set_defaults(func=_cmd_scenario)
+
+    p = sub.add_parser("plot", help="pictures like the paper's Fig. 3 and Fig. 4")
+    p.add_argument("--scenario", default="messe-hamburg")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma-pos", type=float, default=1.0)
+    p.add_argument("--sigma-vel", type=float, default=0.25)
+    p.add_argument("--out", required=True, help="folder for the PNG files")
+    p.set_defaults(func=_cmd_plot)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the `laas` command line and return its exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        code: int = args.func(args)
+    except LaasError as exc:
+        print(f"laas {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"laas {args.command}: {exc.filename}: no such file", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # pydantic's ValidationError is one
+        print(f"laas {args.command}: {exc}", file=sys.stderr)
+        return 2
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

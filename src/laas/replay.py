@@ -1,0 +1,55 @@
+"""Offline correction of a recorded trace with the same engine the worker runs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+
+from laas.config import EngineConfig
+from laas.engine import Engine
+from laas.errors import TraceError
+from laas.hdmap import HdMap
+from laas.models import CorrectedPosition
+from laas.trace import TraceLine
+
+__all__ = ["ReplayResult", "replay"]
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayResult:
+    """The answer to one trace line."""
+
+    line: int
+    user: str
+    answer: CorrectedPosition
+
+
+def replay(
+    hdmap: HdMap,
+    lines: Iterable[TraceLine | TraceError],
+    config: EngineConfig | None = None,
+    on_error: Callable[[TraceError], None] | None = None,
+) -> Iterator[ReplayResult]:
+    """Feed the trace to one engine in file order; bad lines go to `on_error`.
+
+    Lines the engine refuses (a duplicate or an older timestamp of the same user) are
+    reported to `on_error` too, and produce no answer.
+    """
+    engine = Engine(hdmap, config)
+    for item in lines:
+        if isinstance(item, TraceError):
+            if on_error is not None:
+                on_error(item)
+            continue
+        answer = engine.process(item.user, item.measurement)
+        if answer is None:
+            if on_error is not None:
+                on_error(
+                    TraceError(
+                        f"line {item.line}: user {item.user!r}: timestamp "
+                        f"{item.measurement.timestamp} is not newer than the user's last fix; "
+                        "skipped"
+                    )
+                )
+            continue
+        yield ReplayResult(item.line, item.user, answer)

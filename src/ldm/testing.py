@@ -58,7 +58,10 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 def find_mosquitto() -> str | None:
-    """The mosquitto binary on PATH or in /usr/sbin, /usr/local/sbin; None if absent."""
+    """The mosquitto binary: $LDM_MOSQUITTO if set, else PATH, /usr/sbin, /usr/local/sbin."""
+    chosen = os.environ.get("LDM_MOSQUITTO")
+    if chosen is not None:
+        return chosen if os.access(chosen, os.X_OK) else None
     extra = os.pathsep.join(["/usr/sbin", "/usr/local/sbin", "/sbin"])
     return shutil.which("mosquitto", path=os.environ.get("PATH", "") + os.pathsep + extra)
 

@@ -1,0 +1,64 @@
+"""Faults: brokers and cores restart; everyone reconnects, re-subscribes, re-announces."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from ldm import Core, LdmError
+from ldm.participant import Session
+from ldm.testing import wait_for
+
+from .deployment import FAST, deploy, has_service
+
+
+@pytest.fixture
+def deployment(broker_factory):
+    d = deploy(broker_factory)
+    yield d
+    d.close()
+
+
+def works_again(session: Session, within: float = 10.0) -> float:
+    """Retry a request until it succeeds; returns how long that took."""
+    start = time.monotonic()
+    while True:
+        try:
+            assert session.request({"ping": 1}, timeout=0.5) == {"echo": {"ping": 1}}
+            return time.monotonic() - start
+        except LdmError:
+            if time.monotonic() - start > within:
+                raise
+
+
+def restart(broker) -> None:
+    broker.stop()
+    time.sleep(0.2)
+    broker.start()
+
+
+def test_everything_recovers_from_broker_and_core_restarts(deployment) -> None:
+    d = deployment
+    p = d.participant("ivan-car-6")
+    d.wait_listed(p)
+    session = p.open("echo")
+    works_again(session, within=0)
+
+    restart(d.service)  # provider and service core reconnect; the provider re-announces
+    works_again(session)
+
+    restart(d.backbone)  # both cores reconnect; the service core re-announces on it
+    works_again(session)
+
+    restart(d.user)  # the user core re-publishes its retained list; the participant returns
+    assert has_service(p, "echo")()  # list kept locally across the outage
+    works_again(session)
+    assert wait_for(has_service(p, "echo"), 5)
+
+    # A new user core knows nothing of the session: the library asks for it again.
+    d.user_core.stop()
+    d.user_core = Core.create("user-edge", d.user.url, d.backbone.url, **FAST).start(timeout=5)
+    assert d.user_core.session_count == 0
+    works_again(session)
+    assert d.user_core.session_count == 1

@@ -1,0 +1,154 @@
+"""Pure parts: crypto, wire models, settings, topic names, the public API."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from pydantic import ValidationError
+
+import ldm
+from ldm import ConfigError, CoreConfig, CryptoError, KeyPair
+from ldm.config import BrokerSettings, build
+from ldm.messages import Envelope, SessionNotice
+from ldm.topics import check_name
+
+
+def test_public_api_is_pinned() -> None:
+    assert sorted(ldm.__all__) == sorted(
+        [
+            "BrokerSettings",
+            "ConfigError",
+            "ConnectError",
+            "Core",
+            "CoreConfig",
+            "CoreStats",
+            "CryptoError",
+            "EmbeddedBroker",
+            "Handler",
+            "KeyPair",
+            "LdmError",
+            "Participant",
+            "ParticipantConfig",
+            "Provider",
+            "ProviderConfig",
+            "ProviderStats",
+            "Request",
+            "RequestTimeout",
+            "ServiceDescription",
+            "ServiceNotFound",
+            "ServiceSpec",
+            "Session",
+            "SessionError",
+            "SessionGrant",
+        ]
+    )
+    for name in ldm.__all__:
+        assert getattr(ldm, name) is not None
+    assert issubclass(ldm.RequestTimeout, ldm.LdmError)
+    assert issubclass(ldm.RequestTimeout, TimeoutError)
+
+
+def test_both_sides_derive_the_same_keys_and_directions_differ() -> None:
+    service = KeyPair()
+    eph = KeyPair()
+    up = eph.cipher(service.public, initiator=True)
+    down = service.cipher(eph.public, initiator=False)
+    sealed = up.seal(b'{"x":1}', "c1")
+    assert down.open(sealed, "c1") == b'{"x":1}'
+    assert up.open(down.seal(b"reply", "c1"), "c1") == b"reply"
+    with pytest.raises(CryptoError):
+        up.open(sealed, "c1")  # a message never decrypts with its own direction's key
+
+
+def test_tampering_wrong_key_and_wrong_correlation_fail() -> None:
+    service, eph, other = KeyPair(), KeyPair(), KeyPair()
+    sealed = eph.cipher(service.public, initiator=True).seal(b"secret", "c1")
+    down = service.cipher(eph.public, initiator=False)
+    with pytest.raises(CryptoError):
+        down.open(sealed, "c2")
+    with pytest.raises(CryptoError):
+        service.cipher(other.public, initiator=False).open(sealed, "c1")
+    raw = bytearray(base64.b64decode(sealed))
+    raw[-1] ^= 1
+    with pytest.raises(CryptoError):
+        down.open(base64.b64encode(bytes(raw)).decode(), "c1")
+    with pytest.raises(CryptoError):
+        service.cipher("not-a-key", initiator=False)
+
+
+def test_a_persisted_key_keeps_its_public_key() -> None:
+    from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
+    from cryptography.hazmat.primitives.serialization import (
+        Encoding,
+        NoEncryption,
+        PrivateFormat,
+    )
+
+    private = X25519PrivateKey.generate()
+    raw = private.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+    assert KeyPair.from_private_bytes(raw).public == KeyPair(private).public
+    with pytest.raises(CryptoError):
+        KeyPair.from_private_bytes(b"short")
+
+
+@given(st.binary(max_size=300))
+def test_envelope_decoder_rejects_garbage_cleanly(data: bytes) -> None:
+    try:
+        env = Envelope.model_validate_json(data)
+    except ValidationError:
+        return
+    assert isinstance(env.c, str) and isinstance(env.t, float)
+
+
+@given(
+    c=st.from_regex(r"\A[A-Za-z0-9_-]{1,64}\Z"),
+    t=st.floats(min_value=0, max_value=4e9),
+)
+def test_envelope_round_trips_and_is_compact(c: str, t: float) -> None:
+    env = Envelope(c=c, t=t, d="AAAA")
+    assert Envelope.model_validate_json(env.encode()) == env
+    assert set(json.loads(env.encode())) == {"c", "t", "d"}
+
+
+def test_unknown_fields_are_dropped_before_forwarding() -> None:
+    raw = b'{"c":"a1","t":1.0,"d":"AAAA","client_id":"alice","username":"al"}'
+    assert b"alice" not in Envelope.model_validate_json(raw).encode()
+    with pytest.raises(ValidationError):
+        SessionNotice.model_validate_json(b'{"kind":"bogus","service":"x"}')
+
+
+def test_broker_settings_validate_urls_and_keep_passwords_secret(monkeypatch) -> None:
+    s = BrokerSettings.of("mqtts://broker.example:8884")
+    assert (s.tls, s.host, s.port) == (True, "broker.example", 8884)
+    assert BrokerSettings.of("mqtt://h").port == 1883
+    for bad in ("http://h:1", "mqtt://", "mqtt://u:p@h:1", "mqtt://h:99999"):
+        with pytest.raises(ConfigError):
+            BrokerSettings.of(bad)
+    with pytest.raises(ConfigError, match="LDM_TEST_NOPE is not set"):
+        build(BrokerSettings, url="mqtt://h:1", username="u", password_env="LDM_TEST_NOPE")
+    monkeypatch.setenv("LDM_TEST_PW", "hunter2-secret")
+    s = build(BrokerSettings, url="mqtt://h:1", username="u", password_env="LDM_TEST_PW")
+    assert s.password is not None and s.password.get_secret_value() == "hunter2-secret"
+    assert "hunter2" not in repr(s) and "hunter2" not in str(s.model_dump())
+
+
+def test_core_config_validates_and_names_the_setting() -> None:
+    cfg = build(CoreConfig, name="user", cluster="mqtt://h:1", rotation_period=1, grace=0.5)
+    assert cfg.backbone is None and 0.02 <= cfg.tick <= 0.5
+    with pytest.raises(ConfigError, match="grace"):
+        build(CoreConfig, name="user", cluster="mqtt://h:1", grace=-1)
+    with pytest.raises(ConfigError, match="name"):
+        build(CoreConfig, name="a/b", cluster="mqtt://h:1")
+    with pytest.raises(ConfigError, match="data_qos"):
+        build(CoreConfig, name="a", cluster="mqtt://h:1", data_qos=3)
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "+", "#", "a b", "-x", "x" * 129])
+def test_topic_names_reject_wildcards_and_separators(bad: str) -> None:
+    with pytest.raises(ConfigError, match="cannot be used in a topic"):
+        check_name(bad, "client id")
+    assert check_name("car-17.a_b:c", "client id") == "car-17.a_b:c"

@@ -11,13 +11,14 @@ bicycle lane. Cut into five segments: two straights, the curve, two straights.
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
 ORIGIN = (9.9760, 53.5585)  # lon, lat of the road's left edge at the start (St. Pauli, Messe)
 FIRST, RADIUS, TURN, LAST = 290.0, 80.0, -75.0, 200.0
-CURVE_LENGTH = RADIUS * abs(TURN) * 3.141592653589793 / 180.0
+CURVE_LENGTH = RADIUS * math.radians(abs(TURN))
 SPLIT_AT = (145.0, FIRST, FIRST + CURVE_LENGTH, FIRST + CURVE_LENGTH + LAST / 2)
 LANES = (
     LaneSpec("driving", 3.25, "forward"),

@@ -230,6 +230,16 @@ def test_frame_distance_matches_geometry_near_the_road(hamburg: HdMap) -> None:
             assert abs(d) == pytest.approx(seg.reference.distance(shapely.Point(x, y)), abs=0.01)
 
 
+def test_non_finite_inputs_are_rejected(hamburg: HdMap) -> None:
+    seg = hamburg.segments["messe-0"]
+    with pytest.raises(ValueError):
+        seg.frame(math.nan, 0.0)
+    with pytest.raises(ValueError):
+        seg.point(math.inf, 0.0)
+    with pytest.raises(ValueError):
+        seg.lane_offsets(math.nan)
+
+
 def test_frame_array_rejects_bad_shapes(hamburg: HdMap) -> None:
     seg = hamburg.segments["messe-0"]
     assert seg.frame_array(np.zeros((0, 2))).shape == (0, 2)

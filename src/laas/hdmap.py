@@ -445,7 +445,10 @@ class Segment:
 
     def frame(self, x: float, y: float) -> tuple[float, float]:
         """(s, d) of a UTM point: station along the reference, lateral offset (+ to the right)."""
-        return self._frame.frame(float(x), float(y))
+        x, y = float(x), float(y)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"point must be finite, got ({x}, {y})")
+        return self._frame.frame(x, y)
 
     def frame_array(self, xy: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`frame`: (n, 2) UTM points -> (n, 2) of (s, d)."""
@@ -453,7 +456,10 @@ class Segment:
 
     def point(self, s: float, d: float = 0.0) -> tuple[float, float]:
         """The UTM point at station s and lateral offset d; the inverse of :meth:`frame`."""
-        return self._frame.point(float(s), float(d))
+        s, d = float(s), float(d)
+        if not (math.isfinite(s) and math.isfinite(d)):
+            raise ValueError(f"station and offset must be finite, got ({s}, {d})")
+        return self._frame.point(s, d)
 
     def tangent(self, s: float) -> FloatArray:
         """Unit (east, north) vector of the reference direction at station s."""
@@ -470,6 +476,8 @@ class Segment:
 
         Outside [0, length] the offsets at the nearer end are used.
         """
+        if not math.isfinite(s):
+            raise ValueError(f"station must be finite, got {s}")
         table = self._lane_d
         pos = min(max(s, 0.0), self.length) / self.length * (len(table) - 1)
         i = min(int(pos), len(table) - 2)

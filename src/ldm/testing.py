@@ -17,6 +17,7 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Literal, Protocol, Self
 
 from ldm.broker import EmbeddedBroker
@@ -28,6 +29,7 @@ __all__ = [
     "RunningBroker",
     "find_mosquitto",
     "free_port",
+    "mosquitto_acl",
     "mosquitto_required",
     "start_broker",
     "wait_for",
@@ -83,11 +85,39 @@ def wait_for(condition: object, timeout: float = 5.0, interval: float = 0.01) ->
         time.sleep(interval)
 
 
+def mosquitto_acl(core_user: str, providers: Mapping[str, str]) -> str:
+    """Mosquitto ACL lines for one cluster: participants are confined by client id (%c).
+
+    ``providers`` maps a provider's user name to its service name; the core's user may
+    read and write every ``ldm/`` topic (and the backbone's, on that broker).
+    """
+    lines = [
+        "# participants (any client): their own topics and the service list",
+        "pattern write ldm/p/%c/up/#",
+        "pattern read ldm/p/%c/down/#",
+        "topic read ldm/services",
+        f"user {core_user}",
+        "topic readwrite ldm/#",
+    ]
+    for user, service in providers.items():
+        lines += [f"user {user}", f"topic readwrite ldm/svc/{service}/#"]
+    return "\n".join(lines) + "\n"
+
+
 class MosquittoBroker:
-    """A Mosquitto process on 127.0.0.1 with a generated config (anonymous by default)."""
+    """A Mosquitto process on 127.0.0.1 with a generated config (anonymous by default).
+
+    ``acl`` is the text of an ACL file (see `mosquitto_acl`); ``extra_config`` is
+    appended to the config verbatim.
+    """
 
     def __init__(
-        self, port: int = 0, *, extra_config: str = "", allow_anonymous: bool = True
+        self,
+        port: int = 0,
+        *,
+        extra_config: str = "",
+        allow_anonymous: bool = True,
+        acl: str | None = None,
     ) -> None:
         binary = find_mosquitto()
         if binary is None:
@@ -96,7 +126,13 @@ class MosquittoBroker:
         self.port = port or free_port()
         self.host = "127.0.0.1"
         self.directory = Path(tempfile.mkdtemp(prefix="ldm-mosquitto-"))
+        self.directory.chmod(0o755)  # mosquitto started as root reads it as "mosquitto"
         self.config_file = self.directory / "mosquitto.conf"
+        if acl is not None:
+            acl_file = self.directory / "acl"
+            acl_file.write_text(acl)
+            acl_file.chmod(0o644)
+            extra_config += f"acl_file {acl_file}\n"
         self.config_file.write_text(
             f"listener {self.port} {self.host}\n"
             f"allow_anonymous {'true' if allow_anonymous else 'false'}\n"

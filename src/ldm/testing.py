@@ -16,8 +16,8 @@ import socket
 import subprocess
 import tempfile
 import time
-from pathlib import Path
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Literal, Protocol, Self
 
 from ldm.broker import EmbeddedBroker

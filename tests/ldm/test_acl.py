@@ -7,8 +7,8 @@ import time
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
-from ldm.messages import Envelope
 from ldm.config import BrokerSettings
+from ldm.messages import Envelope
 from ldm.pytest_plugin import need_mosquitto
 from ldm.testing import MosquittoBroker, mosquitto_acl, wait_for
 from ldm.transport import Event, Message, Transport

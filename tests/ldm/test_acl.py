@@ -21,7 +21,10 @@ def test_a_participant_cannot_read_or_write_another_participants_topics() -> Non
     need_mosquitto()
     acl = mosquitto_acl("ldm-core", {"svc-echo": "echo"})
     with MosquittoBroker(acl=acl) as broker:
-        as_user = lambda user: BrokerSettings(url=broker.url, username=user)  # noqa: E731
+
+        def as_user(user: str) -> BrokerSettings:
+            return BrokerSettings(url=broker.url, username=user)
+
         echo = EchoService()
         core = Core.create("single", as_user("ldm-core"), idle_timeout=5).start(timeout=5)
         provider = Provider.create(as_user("svc-echo"), ECHO, echo, announce_interval=0.3)

@@ -78,18 +78,18 @@ def test_hamburg_area_is_the_lane_surface(hamburg: HdMap) -> None:
 def test_headings_follow_the_road(hamburg: HdMap) -> None:
     segs = hamburg.segments
     for sid in ("messe-0", "messe-1"):
-        assert _heading_diff(segs[sid].heading(10.0), 25.0) < 0.05
+        assert _heading_diff(segs[sid].heading(10.0), 30.0) < 0.05
     for sid in ("messe-3", "messe-4"):
-        assert _heading_diff(segs[sid].heading(50.0), 310.0) < 0.05
+        assert _heading_diff(segs[sid].heading(50.0), 60.0) < 0.05
     curve = segs["messe-2"]
-    assert _heading_diff(curve.heading(0.0), 25.0) < 1.0
-    assert _heading_diff(curve.heading(curve.length / 2), 25.0 - 37.5) < 1.0
-    assert _heading_diff(curve.heading(curve.length), 310.0) < 1.0
-    # a left-hand curve: heading decreases steadily
+    assert _heading_diff(curve.heading(0.0), 30.0) < 1.0
+    assert _heading_diff(curve.heading(curve.length / 2), 45.0) < 1.0
+    assert _heading_diff(curve.heading(curve.length), 60.0) < 1.0
+    # a right-hand curve: heading increases steadily
     stations = np.linspace(0.0, curve.length, 40)
     headings = [curve.heading(float(s)) for s in stations]
     steps = [(b - a + 180.0) % 360.0 - 180.0 for a, b in itertools.pairwise(headings)]
-    assert all(-5.0 < step <= 1e-9 for step in steps)
+    assert all(-1e-9 <= step < 5.0 for step in steps)
     for s in stations:
         assert 0.0 <= curve.heading(float(s)) < 360.0
         t = curve.tangent(float(s))
@@ -176,17 +176,17 @@ def test_lane_point(hamburg: HdMap) -> None:
 
 
 def test_frame_signs_and_extrapolation(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-0"]  # straight, bearing 25 degrees
+    seg = hamburg.segments["messe-0"]  # straight, bearing 30 degrees
     x0, y0 = seg.reference.coords[0]
-    east = (math.cos(math.radians(25.0)), -math.sin(math.radians(25.0)))  # right of travel
+    east = (math.cos(math.radians(30.0)), -math.sin(math.radians(30.0)))  # right of travel
     s, d = seg.frame(x0 + 2.0 * east[0], y0 + 2.0 * east[1])
-    assert (s, d) == pytest.approx((0.0, 2.0), abs=1e-6)
+    assert (s, d) == pytest.approx((0.0, 2.0), abs=1e-3)
     t = seg.tangent(0.0)
     s, d = seg.frame(x0 - 10.0 * t[0], y0 - 10.0 * t[1])
-    assert (s, d) == pytest.approx((-10.0, 0.0), abs=1e-6)
+    assert (s, d) == pytest.approx((-10.0, 0.0), abs=1e-3)
     xe, ye = seg.reference.coords[-1]
     s, d = seg.frame(xe + 7.0 * t[0] - 1.0 * east[0], ye + 7.0 * t[1] - 1.0 * east[1])
-    assert (s, d) == pytest.approx((seg.length + 7.0, -1.0), abs=1e-6)
+    assert (s, d) == pytest.approx((seg.length + 7.0, -1.0), abs=1e-3)
 
 
 @settings(max_examples=300, deadline=None)

@@ -86,6 +86,11 @@ class Engine:
         self._errors = CommonErrorField(
             self.config.bias_area, self.config.bias_prior, self.config.bias_drift
         )
+        # GNSS headings are true bearings; the map's frame is the UTM grid. Over one map
+        # the meridian convergence (grid = true - convergence) is as good as constant.
+        x0, y0, x1, y1 = hdmap.bounds
+        lon, lat = hdmap.projection.to_wgs84((x0 + x1) / 2.0, (y0 + y1) / 2.0)
+        self._convergence = math.radians(hdmap.projection.convergence(lon, lat))
 
     # -- public ----------------------------------------------------------------------------
 
@@ -107,7 +112,7 @@ class Engine:
             e=e,
             n=n,
             speed=measurement.speed,
-            heading=math.radians(measurement.heading),
+            heading=math.radians(measurement.heading) - self._convergence,
         )
         state = self._users.get(user)
         if state is None:

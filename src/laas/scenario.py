@@ -166,6 +166,8 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
     """Sample every user's fixes with errors drawn from `seed` (reproducible)."""
     rng = np.random.default_rng(seed)
     route = _Route(hdmap, scenario.route)
+    x0, y0, _x1, _y1 = hdmap.bounds
+    convergence = hdmap.projection.convergence(*hdmap.projection.to_wgs84(x0, y0))
     period = 1.0 / scenario.rate
     steps = round(scenario.duration * scenario.rate) + 1
     times = sorted({round(k * period + p.phase, 6) for k in range(steps) for p in scenario.users})
@@ -198,7 +200,8 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
                 latitude=lat,
                 longitude=lon,
                 altitude=10.0,
-                heading=(heading + rng.normal(0.0, errors.sigma_heading)) % 360.0,
+                # the receiver reports a true bearing: grid bearing + convergence
+                heading=(heading + convergence + rng.normal(0.0, errors.sigma_heading)) % 360.0,
                 speed=max(0.0, speed + rng.normal(0.0, errors.sigma_vel)),
             )
             fixes.append(

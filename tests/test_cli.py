@@ -1,0 +1,111 @@
+"""The command line end to end, on a map and a trace that are not Hamburg's."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from laas.cli import main
+from laas.trace import format_measurement
+
+from .helpers import T0, fix_on, small_map, small_map_data
+
+
+@pytest.fixture()
+def files(tmp_path: Path) -> tuple[Path, Path]:
+    """The small Sydney map on disk, and a trace on it with three bad lines."""
+    map_path = tmp_path / "sydney.geojson"
+    map_path.write_text(json.dumps(small_map_data()))
+    hdmap = small_map()
+    seg = hdmap.segments["r-0"]
+    lines = []
+    for k in range(5):
+        for user, lane in (("car", 2), ("bike", 3)):
+            m = fix_on(hdmap, seg, 20.0 + 5 * k, lane, T0 + 1000 * k, bias=(0.5, 0.5))
+            lines.append(format_measurement(user, m))
+    lines.insert(3, '{"user": "car", "timestamp": "soon"}')
+    lines.insert(5, "not json at all")
+    lines.insert(7, lines[6])  # a duplicate fix
+    trace_path = tmp_path / "trace.jsonl"
+    trace_path.write_text("\n".join(lines) + "\n")
+    return map_path, trace_path
+
+
+def test_replay_answers_good_lines_and_names_bad_ones(
+    files: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    map_path, trace_path = files
+    assert main(["replay", "--map", str(map_path), str(trace_path)]) == 0
+    out, err = capsys.readouterr()
+    answers = [json.loads(line) for line in out.splitlines()]
+    assert len(answers) == 10
+    assert {a["user"] for a in answers} == {"car", "bike"}
+    assert [a["lane"] for a in answers if a["user"] == "bike"][-1] == 3
+    assert all(a["segment"] == "r-0" for a in answers)
+    assert "trace.jsonl:4: timestamp: Input should be a valid integer" in err
+    assert "trace.jsonl:6: not JSON" in err
+    assert "is not newer than the user's last fix" in err
+    assert "10 answered, 3 lines skipped" in err
+
+
+def test_replay_reads_stdin_in_a_real_process(files: tuple[Path, Path]) -> None:
+    map_path, trace_path = files
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "laas.cli",
+            "replay",
+            "--map",
+            str(map_path),
+            "-",
+            "--mode",
+            "paper",
+        ],
+        input=trace_path.read_text(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    assert len(done.stdout.splitlines()) == 10
+
+
+def test_a_broken_map_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.geojson"
+    bad.write_text('{"type": "FeatureCollection", "features": [{"type": "Feature"}]}')
+    trace = tmp_path / "t.jsonl"
+    trace.write_text("")
+    assert main(["replay", "--map", str(bad), str(trace)]) == 2
+    assert "feature 0" in capsys.readouterr().err
+
+
+def test_evaluate_json_reports_both_modes_on_the_same_seeds(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["evaluate", "--runs", "1", "--json", "--workers", "1"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 16
+    assert {r["mode"] for r in rows} == {"paper", "default"}
+    for r in rows:
+        assert 0.0 <= r["accuracy"] <= 1.0 and r["aed"] > 0.0
+        assert r["aed"] < r["raw_aed"]
+
+
+def test_scenario_and_plot_write_their_files(tmp_path: Path) -> None:
+    assert main(["scenario", "--out", str(tmp_path), "--seed", "3"]) == 0
+    lines = (tmp_path / "trace.jsonl").read_text().splitlines()
+    truth = (tmp_path / "truth.jsonl").read_text().splitlines()
+    assert len(lines) == len(truth) == 303
+    assert main(["plot", "--out", str(tmp_path)]) == 0
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert pngs == [
+        "messe-hamburg-lanes-default.png",
+        "messe-hamburg-lanes-paper.png",
+        "messe-hamburg-traces.png",
+    ]
+    assert all((tmp_path / p).stat().st_size > 10_000 for p in pngs)

@@ -1,0 +1,98 @@
+"""The engine end to end on a map that is not Hamburg, in both modes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from laas.config import EngineConfig, Mode
+from laas.engine import Engine
+from laas.hdmap import HdMap
+from laas.models import GpsMeasurement
+
+from .helpers import T0, fix_on, small_map
+
+
+@pytest.fixture(scope="module")
+def sydney() -> HdMap:
+    return small_map()
+
+
+@pytest.mark.parametrize("mode", ["default", "paper"])
+def test_group_with_a_common_error_is_placed_on_its_true_lanes(sydney: HdMap, mode: Mode) -> None:
+    seg = sydney.segments["r-0"]
+    rng = np.random.default_rng(1)
+    engine = Engine(sydney, EngineConfig(mode=mode, sigma_pos=0.3))
+    # A pedestrian on the sidewalk, a car forward, a cyclist on the bicycle lane; the
+    # common error pushes everyone 1.2 m across the road and 2 m along it.
+    lanes = {"walker": 0, "car": 2, "bike": 3}
+    speeds = {"walker": 1.4, "car": 6.0, "bike": 5.0}
+    starts = {"walker": 60.0, "car": 40.0, "bike": 50.0}
+    seen: dict[str, list[int | None]] = {u: [] for u in lanes}
+    for k in range(12):
+        for j, (user, lane) in enumerate(lanes.items()):
+            s = starts[user] + speeds[user] * k
+            t = seg.tangent(s)
+            bias = 1.2 * np.array([t[1], -t[0]]) + 2.0 * t  # across (to the right) and along
+            m = fix_on(
+                sydney,
+                seg,
+                s,
+                lane,
+                T0 + k * 1000 + j * 10,
+                bias=(float(bias[0] + rng.normal(0, 0.2)), float(bias[1] + rng.normal(0, 0.2))),
+                speed=speeds[user],
+            )
+            answer = engine.process(user, m)
+            assert answer is not None and answer.segment == "r-0"
+            seen[user].append(answer.lane)
+    for user, lane in lanes.items():
+        assert seen[user][-6:] == [lane] * 6, (user, seen[user])
+    assert engine.stats.answered == 36
+
+
+def test_default_mode_learns_the_common_error_across_two_road_directions() -> None:
+    hdmap = small_map(turn=90.0)
+    engine = Engine(hdmap, EngineConfig(sigma_pos=0.3))
+    bias = np.array([3.0, -2.0])
+    route = [("r-0", s) for s in np.arange(5.0, 150.0, 6.0)]
+    route += [("r-1", s) for s in np.arange(2.0, hdmap.segments["r-1"].length, 6.0)]
+    route += [("r-2", s) for s in np.arange(2.0, 150.0, 6.0)]
+    errors = []
+    for k, (sid, s) in enumerate(route):
+        seg = hdmap.segments[sid]
+        for j, lane in enumerate((1, 2, 3)):
+            m = fix_on(hdmap, seg, float(s), lane, T0 + k * 1000 + j, bias=(3.0, -2.0), speed=6.0)
+            engine.process(f"u{lane}", m)
+        errors.append(engine.common_errors()[0].b - bias)
+    # Along the first straight only the cross-road part is known; after the corner, both.
+    assert np.hypot(*errors[-1]) < 0.5
+    area = engine.common_errors()[0]
+    assert np.sqrt(np.linalg.eigvalsh(area.P)[-1]) < 1.0
+
+
+def test_off_map_duplicates_and_stale_fixes(sydney: HdMap) -> None:
+    engine = Engine(sydney)
+    seg = sydney.segments["r-0"]
+    first = fix_on(sydney, seg, 20.0, 2, T0)
+    assert engine.process("a", first) is not None
+    assert engine.process("a", first) is None
+    assert engine.process("a", fix_on(sydney, seg, 20.0, 2, T0 - 500)) is None
+    assert (engine.stats.duplicate, engine.stats.out_of_order) == (1, 1)
+    far = GpsMeasurement(
+        timestamp=T0 + 1000, latitude=-33.0, longitude=151.0, heading=0.0, speed=0.0
+    )
+    answer = engine.process("b", far)
+    assert answer is not None and answer.segment is None and answer.lane is None
+    assert engine.stats.off_map == 1
+
+
+def test_expiry_and_forget_free_the_state(sydney: HdMap) -> None:
+    engine = Engine(sydney, EngineConfig(track_timeout=5.0))
+    seg = sydney.segments["r-0"]
+    engine.process("a", fix_on(sydney, seg, 20.0, 2, T0))
+    engine.process("b", fix_on(sydney, seg, 30.0, 3, T0 + 4000))
+    assert engine.users == 2
+    assert engine.expire(T0 + 6000) == ["a"]
+    engine.forget("b")
+    assert engine.users == 0

@@ -68,6 +68,7 @@ def test_full_exchange_across_three_brokers(deployment: Deployment) -> None:
         for s, (cid, _) in zip(sessions, CLIENTS, strict=True):
             sent_all.extend(stream(s, cid, 1, 0.0))
         time.sleep(0.02)
+    assert d.user_core.session_count == 3
     for payload, future in sent_all:
         assert future.result(5) == {"echo": payload}, "a reply was lost or altered"
     for s in sessions:
@@ -79,7 +80,6 @@ def test_full_exchange_across_three_brokers(deployment: Deployment) -> None:
     assert not seen & {cid for cid, _ in CLIENTS}
 
     # Idle participants are dropped by the core, with no log-off message.
-    assert d.user_core.session_count == 3
     assert wait_for(lambda: d.user_core.session_count == 0, FAST["idle_timeout"] + 3)
     assert d.user_core.stats.sessions_expired >= 3
     # ... and a participant that comes back gets its session again transparently.

@@ -10,7 +10,7 @@ from ldm import Core, LdmError
 from ldm.participant import Session
 from ldm.testing import wait_for
 
-from .deployment import FAST, deploy, has_service
+from .deployment import FAST, deploy, echo_provider, has_service
 
 
 @pytest.fixture
@@ -62,3 +62,17 @@ def test_everything_recovers_from_broker_and_core_restarts(deployment) -> None:
     assert d.user_core.session_count == 0
     works_again(session)
     assert d.user_core.session_count == 1
+
+
+def test_a_restarted_provider_with_a_new_key_is_used_again(deployment) -> None:
+    d = deployment
+    p = d.participant("judy-car-8")
+    d.wait_listed(p)
+    session = p.open("echo")
+    works_again(session, within=0)
+    old_key = session.service.public_key
+    d.provider.kill()
+    assert wait_for(lambda: not has_service(p, "echo")(), 5)
+    d.provider = echo_provider(d.service.url, d.echo)  # a new process: a new static key
+    works_again(session)
+    assert session.service.public_key == d.provider.key.public != old_key

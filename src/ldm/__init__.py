@@ -10,7 +10,7 @@ participants and services. The LDM knows nothing about positioning.
     EmbeddedBroker  an in-process MQTT broker for tests and zero-install runs
 """
 
-from ldm.broker import EmbeddedBroker
+from ldm.broker import BrokerProcess, EmbeddedBroker
 from ldm.config import BrokerSettings, CoreConfig, ParticipantConfig, ProviderConfig
 from ldm.core import Core, CoreStats
 from ldm.crypto import KeyPair
@@ -28,6 +28,7 @@ from ldm.participant import Participant, Session
 from ldm.provider import Handler, Provider, ProviderStats, Request
 
 __all__ = [
+    "BrokerProcess",
     "BrokerSettings",
     "ConfigError",
     "ConnectError",

@@ -3,20 +3,24 @@
     with EmbeddedBroker() as broker:      # a free port on 127.0.0.1
         print(broker.url)                 # mqtt://127.0.0.1:PORT
 
-The broker runs on its own asyncio loop in a daemon thread; this module is the only
-place that touches amqtt. It allows anonymous clients and keeps no persistence.
+`EmbeddedBroker` runs on its own asyncio loop in a daemon thread; `BrokerProcess` runs
+the same broker as a child process (``python -m ldm broker``), which keeps amqtt off the
+caller's GIL: use it when the caller is busy (a demo with many clients). This module is
+the only place that touches amqtt. The broker allows anonymous clients, no persistence.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import subprocess
+import sys
 import threading
 from typing import Any
 
 from ldm.errors import ConnectError
 
-__all__ = ["EmbeddedBroker"]
+__all__ = ["BrokerProcess", "EmbeddedBroker"]
 
 _START_TIMEOUT = 10.0
 
@@ -101,6 +105,55 @@ class EmbeddedBroker:
         thread.join(_START_TIMEOUT)
 
     def __enter__(self) -> EmbeddedBroker:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+
+class BrokerProcess:
+    """The embedded broker in a child process; same API as `EmbeddedBroker`."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.host = host
+        self.port = port
+        self._process: subprocess.Popen[str] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://{self.host}:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def start(self) -> BrokerProcess:
+        """Start the child and wait until it listens; restarts on the same port."""
+        if self.running:
+            return self
+        command = [sys.executable, "-m", "ldm", "broker", "--host", self.host]
+        process = subprocess.Popen(
+            [*command, "--port", str(self.port)], stdout=subprocess.PIPE, text=True
+        )
+        line = process.stdout.readline() if process.stdout else ""
+        if not line.startswith("ldm broker listening on"):
+            process.kill()
+            process.wait(_START_TIMEOUT)
+            raise ConnectError(f"broker process did not start: {line.strip()}")
+        self.port = int(line.rsplit(":", 1)[1])
+        self._process = process
+        return self
+
+    def stop(self) -> None:
+        """Kill the child (clients see a dropped connection)."""
+        process, self._process = self._process, None
+        if process is not None:
+            process.kill()
+            process.wait(_START_TIMEOUT)
+            if process.stdout:
+                process.stdout.close()
+
+    def __enter__(self) -> BrokerProcess:
         return self.start()
 
     def __exit__(self, *_exc: object) -> None:

@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal, Protocol, Self
 
-from ldm.broker import EmbeddedBroker
+from ldm.broker import BrokerProcess, EmbeddedBroker
 from ldm.errors import ConnectError
 
 __all__ = [
@@ -35,7 +35,7 @@ __all__ = [
     "wait_for",
 ]
 
-BrokerKind = Literal["embedded", "mosquitto"]
+BrokerKind = Literal["embedded", "embedded-process", "mosquitto"]
 
 
 class RunningBroker(Protocol):
@@ -191,4 +191,6 @@ def start_broker(kind: BrokerKind) -> RunningBroker:
     """Start a broker of the given kind on a free port."""
     if kind == "embedded":
         return EmbeddedBroker().start()
+    if kind == "embedded-process":
+        return BrokerProcess().start()
     return MosquittoBroker().start()

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from ldm import EmbeddedBroker
+from ldm import BrokerProcess, EmbeddedBroker
 from ldm.config import BrokerSettings
 from ldm.testing import MosquittoBroker, free_port, wait_for
 from ldm.transport import Connected, Event, Message, Transport
@@ -73,6 +73,21 @@ def test_embedded_broker_picks_a_free_port_and_restarts_on_it() -> None:
             pass
     finally:
         broker.stop()
+
+
+def test_broker_process_serves_and_restarts_on_its_port() -> None:
+    events: list[Event] = []
+    with BrokerProcess() as broker:
+        port = broker.port
+        t = client(broker.url, "proc-client", events)
+        try:
+            broker.stop()
+            assert wait_for(lambda: not t.connected, 5)
+            broker.start()
+            assert broker.port == port
+            assert wait_for(lambda: t.connected, 10)
+        finally:
+            t.stop()
 
 
 @pytest.mark.mosquitto

@@ -20,6 +20,7 @@ from ldm.topics import check_name
 def test_public_api_is_pinned() -> None:
     assert sorted(ldm.__all__) == sorted(
         [
+            "BrokerProcess",
             "BrokerSettings",
             "ConfigError",
             "ConnectError",

@@ -1,0 +1,5 @@
+"""`python -m ldm`: the `ldm` command line."""
+
+from ldm.cli import main
+
+raise SystemExit(main())

@@ -142,7 +142,13 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 def _cmd_demo(a: argparse.Namespace) -> int:
     from laas.demo import run_demo
 
-    return run_demo(out=Path(a.out), runs=a.runs)
+    return run_demo(
+        Path(a.out),
+        seed=a.seed,
+        sigma_pos=a.sigma_pos,
+        speedup=a.speedup,
+        brokers=a.brokers,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,7 +160,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the paper's scenario end to end and show the results")
     p.add_argument("--out", default="out", help="folder for the pictures (default: out)")
-    p.add_argument("--runs", type=int, default=5, help="seeded runs per row of the table")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated GNSS errors")
+    p.add_argument("--sigma-pos", type=float, default=1.0, help="receiver position noise, m")
+    p.add_argument("--speedup", type=float, default=10.0, help="faster than real time by")
+    p.add_argument(
+        "--brokers",
+        choices=["auto", "embedded", "mosquitto"],
+        default="auto",
+        help="broker kind (auto: Mosquitto if installed)",
+    )
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")

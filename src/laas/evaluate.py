@@ -41,6 +41,7 @@ __all__ = [
     "format_table",
     "print_progress",
     "run_trace",
+    "score",
 ]
 
 OBSERVABLE_SPAN = 20.0  # degrees
@@ -105,23 +106,25 @@ class Row:
         return asdict(self)
 
 
-def run_trace(
-    hdmap: HdMap,
-    trace: Trace,
-    config: EngineConfig,
-    on_answer: Callable[[int, CorrectedPosition | None], None] | None = None,
-) -> RunResult:
+def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
     """Feed a simulated trace to a fresh engine and score its answers."""
     engine = Engine(hdmap, config)
+    return score(hdmap, trace, [engine.process(f.user, f.measurement) for f in trace.fixes])
+
+
+def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:
+    """Score answers (one per fix of the trace, None where none came) against the truth."""
     proj = hdmap.projection
     n = len(trace.fixes)
+    if len(answers) != n:
+        raise ValueError(f"{len(answers)} answers for {n} fixes; give one (or None) per fix")
     err = np.full((n, 2), np.nan)
     raw = np.zeros(n)
     ok = np.zeros(n, dtype=bool)
     tangent = np.zeros((n, 2))
     observable = np.zeros(n, dtype=bool)
     lo = hi = None
-    for i, fix in enumerate(trace.fixes):
+    for i, (fix, answer) in enumerate(zip(trace.fixes, answers, strict=True)):
         h = math.radians(fix.true_heading)
         tangent[i] = (math.sin(h), math.cos(h))
         heading = fix.true_heading
@@ -134,15 +137,14 @@ def run_trace(
         m = fix.measurement
         me, mn = proj.to_utm(m.longitude, m.latitude)
         raw[i] = math.hypot(me - fix.true_e, mn - fix.true_n)
-        answer = engine.process(fix.user, m)
-        if on_answer is not None:
-            on_answer(i, answer)
         if answer is None:
             continue
         e, nn = proj.to_utm(answer.longitude, answer.latitude)
         err[i] = (e - fix.true_e, nn - fix.true_n)
         ok[i] = answer.segment == fix.segment and answer.lane == fix.lane
     answered = ~np.isnan(err[:, 0])
+    if not answered.any():
+        raise ValueError("no fix of the trace was answered; nothing to score")
     e_ok = err[answered]
     dist = np.hypot(e_ok[:, 0], e_ok[:, 1])
     t_ok = tangent[answered]

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from laas.config import EngineConfig, Mode
 from laas.errors import LaasError, TraceError
 from laas.hdmap import HdMap
+from laas.scenario import MAPS
+from ldm import BrokerSettings, LdmError
 
 __all__ = ["main"]
 
@@ -151,6 +158,122 @@ def _cmd_demo(a: argparse.Namespace) -> int:
     )
 
 
+def _broker(a: argparse.Namespace) -> BrokerSettings:
+    values: dict[str, Any] = {"url": a.cluster, "ca_file": a.ca_file, "username": a.username}
+    if a.username is not None:
+        values["password_env"] = a.password_env
+    return BrokerSettings(**values)
+
+
+def _wait_for_signal() -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+
+
+def _cmd_worker(a: argparse.Namespace) -> int:
+    from laas.service import start_worker
+
+    logging.basicConfig(
+        level=getattr(logging, a.log_level.upper()),
+        format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
+    )
+    hdmap = HdMap.load(a.map)
+    provider, service = start_worker(_broker(a), hdmap, _engine_config(a), data_qos=a.data_qos)
+    print(
+        f"laas worker: serving {len(hdmap.segments)} road elements of {a.map} "
+        f"on {a.cluster} ({a.mode} mode)",
+        flush=True,
+    )
+    try:
+        _wait_for_signal()
+    finally:
+        provider.stop()
+        s = service.stats
+        print(
+            f"laas worker: stopped; {s.answered} answered, {s.invalid} invalid, "
+            f"{s.refused} refused",
+            flush=True,
+        )
+    return 0
+
+
+def _cmd_simulate(a: argparse.Namespace) -> int:
+    from laas.evaluate import score
+    from laas.participants import run_participants
+    from laas.scenario import ErrorModel, get_scenario, simulate
+    from laas.trace import format_answer
+
+    scenario = get_scenario(a.scenario)
+    hdmap = HdMap.load(scenario.map)
+    trace = simulate(
+        hdmap, scenario, ErrorModel(sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel), a.seed
+    )
+    print(
+        f"laas simulate: {len(trace.fixes)} fixes of {len(scenario.users)} road users "
+        f"at {a.speedup:g}x real time",
+        file=sys.stderr,
+    )
+    live = run_participants(
+        _broker(a),
+        trace,
+        speedup=a.speedup,
+        progress=print_sent,
+    )
+    out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
+    try:
+        for fix, answer in zip(trace.fixes, live.answers, strict=True):
+            if answer is not None:
+                out.write(format_answer(fix.user, answer) + "\n")
+    finally:
+        if out is not sys.stdout:
+            out.close()
+    for error in live.errors[:10]:
+        print(f"laas simulate: {error}", file=sys.stderr)
+    if not live.answered:
+        print("laas simulate: no fix was answered", file=sys.stderr)
+        return 1
+    r = score(hdmap, trace, live.answers)
+    print(
+        f"laas simulate: {live.answered}/{len(trace.fixes)} answered; lane accuracy "
+        f"{r.accuracy:.3f}, AED {r.aed:.2f} m (raw fixes {r.raw_aed:.2f} m)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def print_sent(done: int, total: int) -> None:
+    """Progress of a live run on stderr, about ten lines in all."""
+    if done == total or done % max(1, total // 10) == 0:
+        print(f"  sent {done}/{total} fixes", file=sys.stderr, flush=True)
+
+
+def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
+    p.add_argument(
+        "--cluster",
+        default=os.environ.get(f"{env_prefix}_CLUSTER"),
+        required=f"{env_prefix}_CLUSTER" not in os.environ,
+        help=f"cluster broker, mqtt[s]://HOST:PORT (env {env_prefix}_CLUSTER)",
+    )
+    p.add_argument(
+        "--username",
+        default=os.environ.get(f"{env_prefix}_USERNAME"),
+        help=f"user name on the broker (env {env_prefix}_USERNAME)",
+    )
+    p.add_argument(
+        "--password-env",
+        default=f"{env_prefix}_PASSWORD",
+        help=f"environment variable holding the password (default {env_prefix}_PASSWORD)",
+    )
+    p.add_argument(
+        "--ca-file",
+        type=Path,
+        default=os.environ.get(f"{env_prefix}_CA_FILE"),
+        help="CA certificates for an mqtts:// broker",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -170,6 +293,32 @@ def build_parser() -> argparse.ArgumentParser:
         help="broker kind (auto: Mosquitto if installed)",
     )
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("worker", help="serve the laas service on an LDM service cluster")
+    _connection_args(p, "LAAS")
+    p.add_argument(
+        "--map",
+        default=os.environ.get("LAAS_MAP", str(MAPS / "messe-hamburg.geojson")),
+        help="GeoJSON lane map (env LAAS_MAP; default: the Hamburg test road)",
+    )
+    p.add_argument("--data-qos", type=int, choices=(0, 1, 2), default=0, help="QoS of replies")
+    p.add_argument(
+        "--log-level",
+        default=os.environ.get("LAAS_LOG_LEVEL", "warning"),
+        choices=["debug", "info", "warning", "error"],
+    )
+    _engine_args(p)
+    p.set_defaults(func=_cmd_worker)
+
+    p = sub.add_parser("simulate", help="run a scenario's road users as live LDM participants")
+    _connection_args(p, "LAAS")
+    p.add_argument("--scenario", default="messe-hamburg")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma-pos", type=float, default=1.0)
+    p.add_argument("--sigma-vel", type=float, default=0.25)
+    p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
+    p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
+    p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
     p.add_argument("--map", required=True, help="GeoJSON lane map")
@@ -210,7 +359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         code: int = args.func(args)
-    except LaasError as exc:
+    except (LaasError, LdmError, TimeoutError) as exc:
         print(f"laas {args.command}: {exc}", file=sys.stderr)
         return 2
     except FileNotFoundError as exc:

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from laas.models import CorrectedPosition
 from laas.scenario import Trace
 from laas.service import SERVICE_NAME
-from ldm import Participant, Session
+from ldm import BrokerSettings, Participant, Session
 
 __all__ = ["LiveRun", "run_participants"]
 
@@ -53,7 +53,7 @@ def _wait_for_service(participant: Participant, timeout: float) -> None:
 
 
 def run_participants(
-    cluster: str,
+    cluster: BrokerSettings | str,
     trace: Trace,
     *,
     speedup: float = 1.0,

@@ -23,7 +23,7 @@ from laas.config import EngineConfig
 from laas.engine import Engine
 from laas.hdmap import HdMap
 from laas.models import CorrectedPosition, GpsMeasurement
-from ldm import Provider, Request, ServiceSpec
+from ldm import BrokerSettings, Provider, Request, ServiceSpec
 
 __all__ = ["SERVICE_NAME", "LaasService", "WorkerStats", "service_spec", "start_worker"]
 
@@ -104,7 +104,7 @@ class LaasService:
 
 
 def start_worker(
-    cluster: str,
+    cluster: BrokerSettings | str,
     hdmap: HdMap,
     config: EngineConfig | None = None,
     **provider_settings: Any,
@@ -113,5 +113,5 @@ def start_worker(
     service = LaasService(hdmap, config)
     provider = Provider.create(cluster, service_spec(), service.handle, **provider_settings)
     provider.start()
-    log.info("laas worker serving map %s on %s", hdmap.source, cluster)
+    log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)
     return provider, service

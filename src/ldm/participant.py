@@ -163,6 +163,12 @@ class Session:
         if pending is not None:
             pending.future.set_exception(error)
 
+    def _fail_all(self, error: Exception) -> None:
+        with self._lock:
+            pending, self._pending = list(self._pending.values()), {}
+        for p in pending:
+            p.future.set_exception(error)
+
     def _expire(self, now: float, limit: float) -> None:
         with self._lock:
             old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
@@ -304,9 +310,10 @@ class Participant(Worker[Event]):
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
                 opening.set_exception(error)
+            elif session is not None and notice.c == session._reopen_c:
+                session._reopen_c = None
+                session._fail_all(error)  # the session cannot be re-opened
             elif session is not None:
-                if notice.c == session._reopen_c:
-                    session._reopen_c = None
                 session._fail(notice.c, error)
         elif notice.kind == "rotate" and session is not None:
             session._rotate()

@@ -180,10 +180,14 @@ def test_unknown_service_and_timeout_errors(deployment: Deployment) -> None:
     session = p.open("echo")
     deployment.provider.kill()
     assert wait_for(lacks_service(p, "echo"), 5)
-    with pytest.raises(ServiceNotFound, match="'echo' is gone"):
+    with pytest.raises(ServiceNotFound, match="'echo' is gone|no service 'echo'"):
         session.request({"x": 1}, timeout=3)
     with pytest.raises(RequestTimeout):
         session.request({"x": 1}, timeout=0.0)
+    # Once the core has forgotten the idle session, re-opening it is refused as well.
+    assert wait_for(lambda: deployment.user_core.session_count == 0, 5)
+    with pytest.raises(ServiceNotFound, match="no service 'echo'"):
+        session.request({"x": 1}, timeout=3)
 
 
 def test_edge_deployment_two_brokers(broker_factory) -> None:

@@ -180,7 +180,7 @@ def test_unknown_service_and_timeout_errors(deployment: Deployment) -> None:
     session = p.open("echo")
     deployment.provider.kill()
     assert wait_for(lacks_service(p, "echo"), 5)
-    with pytest.raises(ServiceNotFound, match="'echo' is gone|no service 'echo'"):
+    with pytest.raises(ServiceNotFound, match=r"'echo' is gone|no service 'echo'"):
         session.request({"x": 1}, timeout=3)
     with pytest.raises(RequestTimeout):
         session.request({"x": 1}, timeout=0.0)

@@ -42,7 +42,7 @@ def test_transport_reconnects_and_resubscribes_after_a_restart(mqtt_broker) -> N
     try:
         assert wait_for(lambda: sum(isinstance(e, Connected) for e in got) == 1, 2)
         mqtt_broker.stop()
-        assert wait_for(lambda: not sub.connected, 5)
+        assert wait_for(lambda: not sub.connected, 10)
         mqtt_broker.start()
         assert wait_for(lambda: sum(isinstance(e, Connected) for e in got) == 2, 10)
         assert wait_for(lambda: pub.connected, 10)
@@ -54,7 +54,7 @@ def test_transport_reconnects_and_resubscribes_after_a_restart(mqtt_broker) -> N
                 0.3,
             )
 
-        assert wait_for(delivered, 5)
+        assert wait_for(delivered, 10)
     finally:
         sub.stop()
         pub.stop()

@@ -50,6 +50,8 @@ def test_ldm_broker_and_ldm_core_serve_a_provider() -> None:
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(10)
+            if proc is not None and proc.stdout is not None:
+                proc.stdout.close()
     assert broker.returncode == 0
 
 

@@ -1,0 +1,32 @@
+# One image for every Python service of the deployment: `ldm core`, `laas worker`,
+# `laas simulate` (see docker-compose.yml). No entrypoint: the command is the program.
+#
+#   docker build -t laas .
+#   docker run --rm laas laas worker --help
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /app
+
+# The project, installed from the repository's own files (README.md is the package's
+# long description; the [d] glob keeps the build going while it is absent).
+COPY pyproject.toml README.m[d] ./
+COPY src ./src
+RUN pip install . && rm -rf build src/*.egg-info
+
+COPY maps ./maps
+COPY deploy/healthcheck.py ./deploy/healthcheck.py
+
+# laas.scenario finds maps/ two folders above the package, the source-tree layout; in
+# site-packages that is .../lib/python3.11/maps, so point it at /app/maps.
+RUN ln -s /app/maps "$(python -c 'import laas.scenario as s; print(s.MAPS)')"
+
+RUN useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin laas
+USER laas
+
+ENV LAAS_MAP=/app/maps/messe-hamburg.geojson
+CMD ["laas", "--help"]

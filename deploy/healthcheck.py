@@ -1,0 +1,74 @@
+"""Container health checks for the LDM cores and the LaaS worker (exit 0 healthy, 1 not).
+
+    python deploy/healthcheck.py core mqtt://broker-backbone:1883 user
+    python deploy/healthcheck.py service mqtt://broker-service:1883 laas
+
+`core NAME`: the core's retained status on the backbone (`ldm/bb/core/NAME`) says
+online; its last will turns it offline when the process dies or loses the broker.
+`service NAME`: the service's retained announcement on its cluster broker
+(`ldm/svc/NAME/announce`) is not empty; the provider's last will empties it.
+Both read one retained message through the LDM's own transport, so the check sees
+what the other cores and participants see.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import secrets
+import sys
+import time
+
+from ldm import BrokerSettings, LdmError
+from ldm.messages import CoreStatus
+from ldm.topics import announce, bb_core
+from ldm.transport import Event, Message, Transport
+
+
+def retained(url: str, topic: str, timeout: float) -> bytes | None:
+    """The retained payload of `topic`, or None if none arrives within `timeout` s."""
+    events: queue.SimpleQueue[Event] = queue.SimpleQueue()
+    transport = Transport(
+        BrokerSettings.of(url), client_id=f"health-{secrets.token_hex(4)}", sink=events.put
+    )
+    transport.subscribe(topic, 1)
+    deadline = time.monotonic() + timeout
+    try:
+        transport.start(timeout)
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                event = events.get(timeout=left)
+            except queue.Empty:
+                break
+            if isinstance(event, Message) and event.topic == topic:
+                return event.payload
+    finally:
+        transport.stop()
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("kind", choices=["core", "service"])
+    parser.add_argument("url", help="broker that carries the retained message, mqtt://HOST:PORT")
+    parser.add_argument("name", help="core name or service name")
+    parser.add_argument("--timeout", type=float, default=3.0, help="seconds")
+    a = parser.parse_args(argv)
+    topic = bb_core(a.name) if a.kind == "core" else announce(a.name)
+    try:
+        payload = retained(a.url, topic, a.timeout)
+    except LdmError as exc:
+        print(f"unhealthy: {exc}")
+        return 1
+    if not payload:
+        print(f"unhealthy: no retained message on {topic}")
+        return 1
+    if a.kind == "core" and not CoreStatus.model_validate_json(payload).online:
+        print(f"unhealthy: core {a.name} is marked offline")
+        return 1
+    print(f"healthy: {topic}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

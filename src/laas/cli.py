@@ -158,6 +158,23 @@ def _cmd_demo(a: argparse.Namespace) -> int:
     )
 
 
+def _cmd_bench(a: argparse.Namespace) -> int:
+    from laas.bench import BenchConfig, format_report, run_bench
+
+    config = BenchConfig(
+        participants=a.participants,
+        rate=a.rate,
+        duration=a.duration,
+        brokers=a.brokers,
+        rotation_period=a.rotation_period,
+        processes=a.processes,
+        seed=a.seed,
+    )
+    report = run_bench(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
+    print(json.dumps(report.as_dict(), indent=1) if a.json else format_report(report))
+    return 0 if report.answered else 1
+
+
 def _broker(a: argparse.Namespace) -> BrokerSettings:
     values: dict[str, Any] = {"url": a.cluster, "ca_file": a.ca_file, "username": a.username}
     if a.username is not None:
@@ -293,6 +310,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="broker kind (auto: Mosquitto if installed)",
     )
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("bench", help="latency and throughput through the full LDM topology")
+    p.add_argument("--participants", type=int, default=200, help="simulated participants")
+    p.add_argument("--rate", type=float, default=1.0, help="fixes per participant per second")
+    p.add_argument("--duration", type=float, default=30.0, help="seconds of load")
+    p.add_argument("--brokers", choices=["auto", "embedded", "mosquitto"], default="auto")
+    p.add_argument(
+        "--rotation-period", type=float, default=120.0, help="pseudonym rotation, s (LDM default)"
+    )
+    p.add_argument("--processes", type=int, help="participant processes (default: 2 to 4)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("worker", help="serve the laas service on an LDM service cluster")
     _connection_args(p, "LAAS")

@@ -1,0 +1,620 @@
+"""`laas bench`: latency, throughput and the cost of privacy through the full topology.
+
+    participant processes --> user broker <- user core -> backbone broker <- service core
+      (N ldm.Participants,        ^                                service broker <- worker
+       R Hz each, T seconds)      |
+                                  +-- echo process (the bare MQTT floor)
+
+The brokers are Mosquitto processes (or the embedded broker, each in a child process),
+the two cores and the laas worker share this process, and the participants run in
+worker processes, each participant a real `ldm.Participant` with its own connection.
+They drive simulated road users along the Hamburg road (`laas.scenario`), with the
+fixes' timestamps shifted to the wall clock. Latency is measured where it is felt: from
+just before `Session.submit` (JSON, encryption and publish included) to the moment the
+decrypted reply reaches the participant, on one clock in one process.
+
+The floor, in the same run on the same user broker: each participant process has one
+plain MQTT client (`ldm.transport.Transport`) that publishes a ping beside every fourth
+fix; the echo process takes it off its queue on a worker thread (the hand-off every LDM
+component makes) and publishes it back. The LDM overhead is p50(LDM) / p50(bare).
+
+The cost of privacy: the Hamburg scenario (`laas.scenario.hamburg_scenario`) runs
+through fresh deployments twice, with pseudonyms rotating every `rotation_period`
+seconds of scenario time and with rotation off, and both are scored against the truth.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import queue
+import secrets
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from laas.deployment import BrokerChoice
+from laas.errors import ConfigError
+from laas.evaluate import score
+from laas.hdmap import HdMap
+from laas.models import CorrectedPosition
+from laas.participants import run_participants
+from laas.scenario import (
+    EPOCH_MS,
+    ErrorModel,
+    Scenario,
+    Trace,
+    UserPlan,
+    hamburg_scenario,
+    simulate,
+)
+from laas.service import SERVICE_NAME, LaasService, start_worker
+from ldm import BrokerSettings, Core, Participant, Provider, Session
+from ldm.testing import RunningBroker, find_mosquitto, start_broker
+from ldm.transport import Event, Message, Transport
+
+__all__ = [
+    "BenchConfig",
+    "BenchReport",
+    "Latency",
+    "PrivacyRun",
+    "bench_scenario",
+    "format_report",
+    "run_bench",
+]
+
+ROTATION_OFF = 1e9  # s: longer than any run
+_PING_EVERY = 4  # one bare ping beside every fourth fix
+_PING = "bench/bare/{shard}/ping"
+_PONG = "bench/bare/{shard}/pong"
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What to run: N participants at R Hz for T seconds on a kind of broker."""
+
+    participants: int = 200
+    rate: float = 1.0
+    duration: float = 30.0
+    brokers: BrokerChoice = "auto"
+    rotation_period: float = 120.0
+    processes: int | None = None  # participant processes; default: 2 to 4 by cores
+    seed: int = 0
+    privacy_speedup: float = 20.0  # the Hamburg runs, faster than real time by
+    reply_timeout: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.participants < 1:
+            raise ConfigError("--participants must be at least 1")
+        if not (0.0 < self.rate <= 50.0):
+            raise ConfigError("--rate must be in (0, 50] Hz")
+        if self.duration <= 0.0:
+            raise ConfigError("--duration must be positive")
+        if self.rotation_period <= 0.0:
+            raise ConfigError("--rotation-period must be positive")
+        if self.processes is not None and self.processes < 1:
+            raise ConfigError("--processes must be at least 1")
+
+
+@dataclass(frozen=True)
+class Latency:
+    """Percentiles of round trips, in milliseconds."""
+
+    n: int
+    p50: float
+    p95: float
+    p99: float
+    mean: float
+    max: float
+
+    @classmethod
+    def of(cls, seconds: Sequence[float]) -> Latency:
+        if not seconds:
+            return cls(0, math.nan, math.nan, math.nan, math.nan, math.nan)
+        ms = 1000.0 * np.asarray(seconds, dtype=float)
+        p50, p95, p99 = np.percentile(ms, [50, 95, 99])
+        return cls(len(ms), float(p50), float(p95), float(p99), float(ms.mean()), float(ms.max()))
+
+
+@dataclass(frozen=True)
+class PrivacyRun:
+    """The Hamburg scenario through the deployment at one rotation period."""
+
+    rotation_period: float  # s of scenario time; ROTATION_OFF for none
+    rotations: int  # pseudonym changes the user core made
+    answered: int
+    fixes: int
+    accuracy: float
+    aed: float
+
+
+@dataclass
+class BenchReport:
+    """Everything `laas bench` measured."""
+
+    participants: int
+    rate: float
+    duration: float
+    brokers: str
+    processes: int
+    sent: int
+    answered: int
+    error_replies: int
+    lost: int
+    elapsed: float  # s from the first send to the last
+    ldm: Latency
+    bare: Latency
+    bare_lost: int
+    dropped_stale: int  # by the cores, over max_age
+    worker_answered: int
+    privacy: list[PrivacyRun] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def share_answered(self) -> float:
+        return self.answered / self.sent if self.sent else 0.0
+
+    @property
+    def throughput(self) -> float:
+        """Corrected positions received per second."""
+        return self.answered / self.elapsed if self.elapsed > 0 else 0.0
+
+    @property
+    def overhead(self) -> float:
+        """p50 of the LDM round trip over p50 of the bare MQTT echo."""
+        return self.ldm.p50 / self.bare.p50 if self.bare.p50 > 0 else math.nan
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.update(
+            share_answered=self.share_answered,
+            throughput=self.throughput,
+            overhead=self.overhead,
+        )
+        return d
+
+
+# --- the participants' drive --------------------------------------------------------
+
+
+def bench_scenario(participants: int, rate: float, duration: float, seed: int = 0) -> Scenario:
+    """N road users on the Hamburg road: cars on the driving lanes, cyclists on the bike
+    lane, random starts and speeds, all staying on the route for `duration` seconds."""
+    base = hamburg_scenario()
+    hdmap = HdMap.load(base.map)
+    length = sum(hdmap.segments[s].length for s in base.route) - 1.0
+    rng = np.random.default_rng(seed)
+    users = []
+    for i in range(participants):
+        car = rng.random() < 0.6
+        speed = float(rng.uniform(4.0, 9.0) if car else rng.uniform(3.0, 6.0))
+        speed = min(speed, 0.8 * length / duration)
+        start = float(rng.uniform(0.0, length - speed * duration))
+        lane = int(rng.integers(0, 2)) if car else 3
+        users.append(
+            UserPlan(
+                user=f"u{i:04d}",
+                kind="car" if car else "bicycle",
+                speed=speed,
+                start=start,
+                lanes=((0.0, lane),),
+                phase=float(rng.uniform(0.0, min(0.999, 1.0 / rate))),
+            )
+        )
+    return base.model_copy(
+        update={"name": "bench", "users": tuple(users), "duration": duration, "rate": rate}
+    )
+
+
+# --- the deployment -----------------------------------------------------------------
+
+
+class _Topology:
+    """Three brokers, two cores and the worker; brokers outside this process."""
+
+    def __init__(self, kind: Literal["mosquitto", "embedded-process"], hdmap: HdMap) -> None:
+        self.kind = kind
+        self.hdmap = hdmap
+        self.brokers: dict[str, RunningBroker] = {}
+        self.cores: dict[str, Core] = {}
+        self.provider: Provider | None = None
+        self.service: LaasService | None = None
+
+    def url(self, name: str) -> str:
+        return self.brokers[name].url
+
+    def start_brokers(self) -> _Topology:
+        for name in ("user", "backbone", "service"):
+            self.brokers[name] = start_broker(self.kind)
+        return self
+
+    def start_ldm(self, rotation_period: float) -> _Topology:
+        for name in ("user", "service"):
+            self.cores[name] = Core.create(
+                name, self.url(name), self.url("backbone"), rotation_period=rotation_period
+            ).start()
+        self.provider, self.service = start_worker(self.url("service"), self.hdmap)
+        return self
+
+    def stop(self) -> None:
+        if self.provider is not None:
+            self.provider.stop()
+            self.provider = None
+        for core in self.cores.values():
+            core.stop()
+        for broker in self.brokers.values():
+            broker.stop()
+
+
+# --- participant processes ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Shard:
+    index: int
+    url: str
+    tag: str
+    # (seconds after the start, user, measurement as a dict), in time order
+    sends: list[tuple[float, str, dict[str, Any]]]
+    reply_timeout: float
+
+
+def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, abort: Any) -> None:
+    """Run one shard of the participants; report to `results` (a multiprocessing queue)."""
+    users = sorted({u for _, u, _ in shard.sends})
+    participants: dict[str, Participant] = {}
+    pongs: dict[int, float] = {}
+
+    def on_pong(event: Event) -> None:  # paho's thread: record the time, nothing more
+        if isinstance(event, Message):
+            pongs[int(event.payload)] = time.perf_counter()
+
+    bare = Transport(
+        BrokerSettings.of(shard.url),
+        client_id=f"bench-bare-{shard.tag}-{shard.index}",
+        sink=on_pong,
+    )
+    bare.subscribe(_PONG.format(shard=shard.index), 0)
+    try:
+        bare.start(10.0)
+        for u in users:
+            participants[u] = Participant.create(shard.url, client_id=f"bench-{shard.tag}-{u}")
+            participants[u].start()
+        first = participants[users[0]]
+        deadline = time.monotonic() + 30.0
+        while not any(s.name == SERVICE_NAME for s in first.services(timeout=0.5)):
+            if time.monotonic() > deadline:
+                raise TimeoutError("the laas service did not appear within 30 s")
+            time.sleep(0.1)
+        sessions: dict[str, Session] = {u: p.open(SERVICE_NAME) for u, p in participants.items()}
+    except Exception as exc:
+        results.put(("failed", shard.index, f"{type(exc).__name__}: {exc}"))
+        for p in participants.values():
+            p.stop()
+        bare.stop()
+        return
+    results.put(("ready", shard.index, len(sessions)))
+    go.wait()
+    try:
+        if not abort.is_set():
+            results.put(
+                ("done", shard.index, _drive(shard, sessions, bare, pongs, results, start_at))
+            )
+    except Exception as exc:
+        results.put(("failed", shard.index, f"{type(exc).__name__}: {exc}"))
+    finally:
+        for p in participants.values():
+            p.stop()
+        bare.stop()
+
+
+def _drive(
+    shard: _Shard,
+    sessions: dict[str, Session],
+    bare: Transport,
+    pongs: dict[int, float],
+    results: Any,
+    start_at: Any,
+) -> dict[str, Any]:
+    """Send the shard's fixes on time, then collect the replies and the pongs."""
+    done_at: dict[int, float] = {}
+    futures: list[tuple[float, Future[dict[str, Any]]]] = []
+    pings: dict[int, float] = {}
+    t0 = start_at.value
+    mono0 = time.perf_counter() + (t0 - time.time())
+    next_report = time.perf_counter() + 1.0
+    for i, (offset, user, measurement) in enumerate(shard.sends):
+        delay = mono0 + offset - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        payload = dict(measurement, timestamp=round((t0 + offset) * 1000.0))
+        sent = time.perf_counter()
+        future = sessions[user].submit(payload)
+        future.add_done_callback(_stamp(done_at, i))
+        futures.append((sent, future))
+        if i % _PING_EVERY == 0:
+            pings[i] = time.perf_counter()
+            bare.publish(_PING.format(shard=shard.index), str(i).encode(), 0)
+        if time.perf_counter() >= next_report:
+            answered = sum(f.done() for _, f in futures)
+            results.put(("progress", shard.index, (i + 1, answered)))
+            next_report += 1.0
+    end = time.perf_counter()
+
+    latencies: list[float] = []
+    errors: list[str] = []
+    error_replies = lost = 0
+    for i, (sent, future) in enumerate(futures):
+        try:
+            reply = future.result(max(0.0, sent + shard.reply_timeout - time.perf_counter()))
+        except Exception as exc:  # a timeout, or the session gave the request up
+            lost += 1
+            if len(errors) < 5:
+                errors.append(f"fix {i}: no reply ({type(exc).__name__}: {exc})")
+            continue
+        if "error" in reply:
+            error_replies += 1
+            if len(errors) < 5:
+                errors.append(f"fix {i}: {reply['error'].get('message')}")
+            continue
+        CorrectedPosition.model_validate(reply)
+        latencies.append(done_at.get(i, time.perf_counter()) - sent)
+    time.sleep(min(1.0, shard.reply_timeout))  # the last pongs
+    bare_latencies = [pongs[i] - t for i, t in pings.items() if i in pongs]
+    return {
+        "sent": len(futures),
+        "latencies": latencies,
+        "error_replies": error_replies,
+        "lost": lost,
+        "bare": bare_latencies,
+        "bare_lost": len(pings) - len(bare_latencies),
+        "elapsed": end - mono0,
+        "errors": errors,
+    }
+
+
+def _stamp(done_at: dict[int, float], i: int) -> Callable[[Future[dict[str, Any]]], None]:
+    """A done-callback recording when reply i arrived (on the participant's thread)."""
+
+    def record(_future: Future[dict[str, Any]]) -> None:
+        done_at[i] = time.perf_counter()
+
+    return record
+
+
+def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
+    """Echo every ping on the user broker back as a pong, via a worker thread."""
+    inbox: queue.SimpleQueue[Event] = queue.SimpleQueue()
+    transport = Transport(BrokerSettings.of(url), client_id=f"bench-echo-{tag}", sink=inbox.put)
+    transport.subscribe(_PING.format(shard="+"), 0)
+
+    def work() -> None:
+        while True:
+            event = inbox.get()
+            if isinstance(event, Message):
+                transport.publish(event.topic[: -len("ping")] + "pong", event.payload, 0)
+            elif event is None:
+                return
+
+    worker = threading.Thread(target=work, name="bench-echo", daemon=True)
+    worker.start()
+    transport.start(10.0)
+    ready.set()
+    stop.wait()
+    transport.stop()
+
+
+# --- the run ------------------------------------------------------------------------
+
+
+def _kind(brokers: BrokerChoice) -> Literal["mosquitto", "embedded-process"]:
+    if brokers == "mosquitto" or (brokers == "auto" and find_mosquitto()):
+        if not find_mosquitto():
+            raise ConfigError("--brokers mosquitto, but mosquitto is not installed")
+        return "mosquitto"
+    return "embedded-process"
+
+
+def _shards(trace: Trace, processes: int, url: str, config: BenchConfig) -> list[_Shard]:
+    users = sorted({f.user for f in trace.fixes})
+    owner = {u: k % processes for k, u in enumerate(users)}
+    sends: list[list[tuple[float, str, dict[str, Any]]]] = [[] for _ in range(processes)]
+    for fix in trace.fixes:
+        offset = (fix.measurement.timestamp - EPOCH_MS) / 1000.0
+        sends[owner[fix.user]].append((offset, fix.user, fix.measurement.model_dump()))
+    tag = secrets.token_hex(3)
+    return [_Shard(k, url, tag, s, config.reply_timeout) for k, s in enumerate(sends) if s]
+
+
+def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress) -> BenchReport:
+    cores = mp.cpu_count() or 2
+    processes = config.processes or max(2, min(4, cores))
+    processes = min(processes, config.participants)
+    ctx = mp.get_context("spawn")
+    results = ctx.Queue()
+    go, abort, echo_ready, echo_stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
+    start_at = ctx.Value("d", 0.0)
+    shards = _shards(trace, processes, topology.url("user"), config)
+    echo = ctx.Process(
+        target=_echo_process,
+        args=(topology.url("user"), shards[0].tag, echo_ready, echo_stop),
+        name="bench-echo",
+    )
+    workers = [
+        ctx.Process(
+            target=_participant_process,
+            args=(shard, results, go, start_at, abort),
+            name=f"bench-participants-{shard.index}",
+        )
+        for shard in shards
+    ]
+    try:
+        echo.start()
+        for w in workers:
+            w.start()
+        if not echo_ready.wait(30.0):
+            raise ConfigError("the echo process did not connect within 30 s")
+        ready = 0
+        while ready < len(shards):
+            kind, index, value = results.get(timeout=90.0)
+            if kind == "failed":
+                raise ConfigError(f"participant process {index} could not start: {value}")
+            ready += 1
+            say(f"  participant process {index}: {value} sessions open")
+        start_at.value = time.time() + 0.5
+        go.set()
+        say(f"  sending for {config.duration:g} s ...")
+        sent = {s.index: 0 for s in shards}
+        answered = dict(sent)
+        done: dict[int, dict[str, Any]] = {}
+        next_line = time.monotonic() + 5.0
+        t_start = time.monotonic()
+        limit = config.duration + config.reply_timeout + 60.0
+        while len(done) < len(shards):
+            try:
+                kind, index, value = results.get(timeout=1.0)
+            except queue.Empty:
+                if time.monotonic() - t_start > limit:
+                    raise TimeoutError("participant processes did not finish") from None
+                continue
+            if kind == "failed":
+                raise ConfigError(f"participant process {index} failed: {value}")
+            if kind == "progress":
+                sent[index], answered[index] = value
+            elif kind == "done":
+                done[index] = value
+                sent[index] = answered[index] = value["sent"]
+            if time.monotonic() >= next_line:
+                next_line += 5.0
+                say(
+                    f"  t={time.monotonic() - t_start:4.0f} s: {sum(sent.values())} fixes sent, "
+                    f"{sum(answered.values())} replies"
+                )
+    finally:
+        abort.set()
+        go.set()
+        echo_stop.set()
+        for process in (*workers, echo):
+            process.join(10.0)
+            if process.is_alive():
+                process.kill()
+                process.join(5.0)
+    parts = list(done.values())
+    service = topology.service
+    return BenchReport(
+        participants=config.participants,
+        rate=config.rate,
+        duration=config.duration,
+        brokers=topology.kind,
+        processes=len(shards),
+        sent=sum(p["sent"] for p in parts),
+        answered=sum(len(p["latencies"]) for p in parts),
+        error_replies=sum(p["error_replies"] for p in parts),
+        lost=sum(p["lost"] for p in parts),
+        elapsed=max(p["elapsed"] for p in parts),
+        ldm=Latency.of([x for p in parts for x in p["latencies"]]),
+        bare=Latency.of([x for p in parts for x in p["bare"]]),
+        bare_lost=sum(p["bare_lost"] for p in parts),
+        dropped_stale=sum(c.stats.dropped_stale for c in topology.cores.values()),
+        worker_answered=service.stats.answered if service else 0,
+        errors=[e for p in parts for e in p["errors"]][:10],
+    )
+
+
+def _privacy(
+    kind: Literal["mosquitto", "embedded-process"], period: float, speedup: float
+) -> PrivacyRun:
+    """The Hamburg scenario at `speedup`, pseudonyms rotating every `period` s of its time."""
+    scenario = hamburg_scenario()
+    hdmap = HdMap.load(scenario.map)
+    trace = simulate(hdmap, scenario, ErrorModel(), seed=0)
+    topology = _Topology(kind, hdmap).start_brokers()
+    try:
+        topology.start_ldm(rotation_period=period / speedup)
+        live = run_participants(topology.url("user"), trace, speedup=speedup)
+        rotations = topology.cores["user"].stats.rotations
+    finally:
+        topology.stop()
+    result = score(hdmap, trace, live.answers) if live.answered else None
+    return PrivacyRun(
+        rotation_period=period,
+        rotations=rotations,
+        answered=live.answered,
+        fixes=len(trace.fixes),
+        accuracy=result.accuracy if result else math.nan,
+        aed=result.aed if result else math.nan,
+    )
+
+
+def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchReport:
+    """Run the load, then the two privacy runs; `progress` gets a line now and then."""
+    say = progress or (lambda _line: None)
+    kind = _kind(config.brokers)
+    scenario = bench_scenario(config.participants, config.rate, config.duration, config.seed)
+    hdmap = HdMap.load(scenario.map)
+    trace = simulate(hdmap, scenario, ErrorModel(), config.seed)
+    say(
+        f"laas bench: {config.participants} participants at {config.rate:g} Hz for "
+        f"{config.duration:g} s ({len(trace.fixes)} fixes) on {kind} brokers"
+    )
+    topology = _Topology(kind, hdmap).start_brokers()
+    try:
+        topology.start_ldm(config.rotation_period)
+        report = _load(config, topology, trace, say)
+    finally:
+        topology.stop()
+    for period in (config.rotation_period, ROTATION_OFF):
+        label = "off" if period == ROTATION_OFF else f"every {period:g} s"
+        say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")
+        report.privacy.append(_privacy(kind, period, config.privacy_speedup))
+    return report
+
+
+def format_report(r: BenchReport) -> str:
+    """The table `laas bench` prints."""
+    lines = [
+        f"laas bench: {r.participants} participants at {r.rate:g} Hz for {r.duration:g} s "
+        f"through 3 {r.brokers} brokers, 2 LDM cores and the laas worker",
+        f"(participants in {r.processes} processes; floor: MQTT echo over the user broker)",
+        "",
+        f"{'round trip, ms':<34}{'n':>7}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'max':>9}",
+    ]
+    for name, lat in (
+        ("LDM: fix -> corrected position", r.ldm),
+        ("bare MQTT echo (floor)", r.bare),
+    ):
+        lines.append(
+            f"{name:<34}{lat.n:>7}{lat.p50:>9.2f}{lat.p95:>9.2f}{lat.p99:>9.2f}"
+            f"{lat.mean:>9.2f}{lat.max:>9.2f}"
+        )
+    lines += [
+        f"{'LDM overhead (p50 / bare p50)':<34}{r.overhead:>16.1f}x",
+        "",
+        f"answered     {r.answered}/{r.sent} ({100 * r.share_answered:.1f} %); "
+        f"{r.error_replies} error replies, {r.lost} without reply; "
+        f"{r.dropped_stale} dropped as stale by the cores",
+        f"throughput   {r.throughput:.1f} corrected positions/s "
+        f"({r.sent / r.elapsed if r.elapsed else 0:.1f} fixes/s sent)",
+    ]
+    if r.privacy:
+        lines += ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]
+        for p in r.privacy:
+            label = (
+                "rotation off"
+                if p.rotation_period == ROTATION_OFF
+                else (f"rotation every {p.rotation_period:g} s")
+            )
+            lines.append(
+                f"  {label:<26} accuracy {p.accuracy:.3f}, AED {p.aed:.2f} m, "
+                f"{p.answered}/{p.fixes} answered, {p.rotations} rotations"
+            )
+    for error in r.errors[:5]:
+        lines.append(f"  e.g. {error}")
+    return "\n".join(lines)

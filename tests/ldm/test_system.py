@@ -232,3 +232,28 @@ def test_payload_on_the_wire_is_ciphertext(deployment: Deployment) -> None:
             assert set(json.loads(m.payload)) <= {"c", "t", "k", "d"}
     finally:
         spy.stop()
+
+
+def test_cores_and_providers_survive_garbage(deployment: Deployment) -> None:
+    d = deployment
+    p = d.participant("kim-car-9")
+    d.wait_listed(p)
+    session = p.open("echo")
+    vandal = Transport(BrokerSettings(url=d.user.url), client_id="vandal", sink=lambda e: None)
+    inside = Transport(BrokerSettings(url=d.service.url), client_id="vandal2", sink=lambda e: None)
+    vandal.start(timeout=5)
+    inside.start(timeout=5)
+    try:
+        junk = [b"", b"\xff\xfe", b"{", b"[]", b'{"c":"../#","t":"x","d":1}', b"null"]
+        for payload in junk:
+            for topic in ("ldm/p/vandal/up/session", "ldm/p/vandal/up/data/echo"):
+                vandal.publish(topic, payload, qos=1)
+            for topic in ("ldm/svc/echo/in/fake", "ldm/svc/echo/out/fake"):
+                inside.publish(topic, payload, qos=1)
+        assert wait_for(lambda: d.provider.stats.dropped_invalid >= len(junk) - 1, 5)
+        assert wait_for(lambda: d.user_core.stats.dropped_invalid >= 2 * (len(junk) - 1), 5)
+        assert session.request({"still": "fine"}) == {"echo": {"still": "fine"}}
+        assert has_service(p, "echo")()
+    finally:
+        vandal.stop()
+        inside.stop()

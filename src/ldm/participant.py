@@ -228,7 +228,12 @@ class Participant(Worker[Event]):
         return list(self._services)
 
     def open(self, service: str, timeout: float = 5.0) -> Session:
-        """Request a session with a service and wait for the core's grant."""
+        """Request a session with a service and wait for the core's grant.
+
+        One session per service: opening the same service again replaces the session.
+        Raises ServiceNotFound if the core does not know the service, SessionError if
+        the core does not answer in time.
+        """
         c = _token()
         future: Future[SessionGrant] = Future()
         with self._lock:

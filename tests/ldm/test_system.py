@@ -12,13 +12,22 @@ from typing import Any
 
 import pytest
 
-from ldm import Participant, RequestTimeout, ServiceNotFound
+from ldm import Core, Participant, RequestTimeout, ServiceNotFound
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, ServiceList
 from ldm.testing import wait_for
 from ldm.transport import Connected, Message, Transport
 
-from .deployment import FAST, Deployment, Sniffer, deploy, has_service, lacks_service
+from .deployment import (
+    FAST,
+    Deployment,
+    EchoService,
+    Sniffer,
+    deploy,
+    echo_provider,
+    has_service,
+    lacks_service,
+)
 
 PLAINTEXT = "PLAINTEXT-MARKER-4711"
 CLIENTS = [("alice-car-7Q", "alice-user"), ("bob-truck-3Z", "bob-user"), ("carol-bike-9K", None)]
@@ -145,8 +154,6 @@ def test_provider_that_vanishes_is_dropped_by_will_and_by_ttl(deployment: Deploy
     assert wait_for(lacks_service(p, "echo"), 5)
 
     # A provider that stays connected but stops re-announcing expires after the TTL.
-    from .deployment import EchoService, echo_provider
-
     silent = echo_provider(d.service.url, EchoService())
     assert wait_for(has_service(p, "echo"), 5)
     silent.stop_worker()  # no more announcements, connection kept
@@ -257,3 +264,24 @@ def test_cores_and_providers_survive_garbage(deployment: Deployment) -> None:
     finally:
         vandal.stop()
         inside.stop()
+
+
+def test_a_vanished_core_takes_its_services_with_it(broker_factory) -> None:
+    """The service core's last will on the backbone removes its services well before TTL."""
+    user, backbone, service = broker_factory(), broker_factory(), broker_factory()
+    slow = {**FAST, "service_ttl": 60.0}
+    user_core = Core.create("u", user.url, backbone.url, **slow).start(timeout=5)
+    service_core = Core.create("s", service.url, backbone.url, **slow).start(timeout=5)
+    provider = echo_provider(service.url, EchoService())
+    try:
+        with Participant.create(user.url, client_id="lee-car") as p:
+            assert wait_for(has_service(p, "echo"), 5)
+            service_core.stop_worker()
+            assert service_core.backbone is not None
+            service_core.backbone.kill()  # a crash: the broker publishes the core's will
+            assert wait_for(lacks_service(p, "echo"), 5)
+            assert not user_core.services
+    finally:
+        provider.stop()
+        service_core.cluster.stop()
+        user_core.stop()

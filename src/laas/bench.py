@@ -53,8 +53,8 @@ from laas.scenario import (
     hamburg_scenario,
     simulate,
 )
-from laas.service import SERVICE_NAME, LaasService, start_worker
-from ldm import BrokerSettings, Core, Participant, Provider, Session
+from laas.service import SERVICE_NAME, start_worker
+from ldm import BrokerSettings, Core, Participant, Session
 from ldm.testing import RunningBroker, find_mosquitto, start_broker
 from ldm.transport import Event, Message, Transport
 
@@ -217,18 +217,29 @@ def bench_scenario(participants: int, rate: float, duration: float, seed: int = 
 
 
 class _Topology:
-    """Three brokers, two cores and the worker; brokers outside this process."""
+    """Three brokers, two cores (in this process) and the worker (in its own process).
+
+    The worker gets a process of its own, as in the field: its engine holds the GIL for
+    milliseconds per fix, which would otherwise delay every core hop in this process.
+    """
 
     def __init__(self, kind: Literal["mosquitto", "embedded-process"], hdmap: HdMap) -> None:
         self.kind = kind
         self.hdmap = hdmap
         self.brokers: dict[str, RunningBroker] = {}
         self.cores: dict[str, Core] = {}
-        self.provider: Provider | None = None
-        self.service: LaasService | None = None
+        ctx = mp.get_context("spawn")
+        self._ready, self._stop = ctx.Event(), ctx.Event()
+        self._answered = ctx.Value("q", -1)
+        self._worker: Any = None
 
     def url(self, name: str) -> str:
         return self.brokers[name].url
+
+    @property
+    def worker_answered(self) -> int:
+        """Fixes the worker answered (known once it has stopped)."""
+        return int(self._answered.value)
 
     def start_brokers(self) -> _Topology:
         for name in ("user", "backbone", "service"):
@@ -240,17 +251,37 @@ class _Topology:
             self.cores[name] = Core.create(
                 name, self.url(name), self.url("backbone"), rotation_period=rotation_period
             ).start()
-        self.provider, self.service = start_worker(self.url("service"), self.hdmap)
+        self._worker = mp.get_context("spawn").Process(
+            target=_worker_process,
+            args=(self.url("service"), self.hdmap.source, self._ready, self._stop, self._answered),
+            name="bench-worker",
+        )
+        self._worker.start()
+        if not self._ready.wait(60.0):
+            raise ConfigError("the laas worker process did not start within 60 s")
         return self
 
     def stop(self) -> None:
-        if self.provider is not None:
-            self.provider.stop()
-            self.provider = None
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(15.0)
+            if self._worker.is_alive():
+                self._worker.kill()
+                self._worker.join(5.0)
+            self._worker = None
         for core in self.cores.values():
             core.stop()
         for broker in self.brokers.values():
             broker.stop()
+
+
+def _worker_process(url: str, map_path: str, ready: Any, stop: Any, answered: Any) -> None:
+    """`laas worker` in a child process; leaves its answer count in `answered`."""
+    provider, service = start_worker(url, HdMap.load(map_path))
+    ready.set()
+    stop.wait()
+    provider.stop()
+    answered.value = service.stats.answered
 
 
 # --- participant processes ----------------------------------------------------------
@@ -507,7 +538,6 @@ def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress)
                 process.kill()
                 process.join(5.0)
     parts = list(done.values())
-    service = topology.service
     return BenchReport(
         participants=config.participants,
         rate=config.rate,
@@ -523,7 +553,7 @@ def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress)
         bare=Latency.of([x for p in parts for x in p["bare"]]),
         bare_lost=sum(p["bare_lost"] for p in parts),
         dropped_stale=sum(c.stats.dropped_stale for c in topology.cores.values()),
-        worker_answered=service.stats.answered if service else 0,
+        worker_answered=-1,  # known when the topology stops
         errors=[e for p in parts for e in p["errors"]][:10],
     )
 
@@ -570,6 +600,7 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
         report = _load(config, topology, trace, say)
     finally:
         topology.stop()
+    report.worker_answered = topology.worker_answered
     for period in (config.rotation_period, ROTATION_OFF):
         label = "off" if period == ROTATION_OFF else f"every {period:g} s"
         say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")

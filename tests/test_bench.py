@@ -1,0 +1,80 @@
+"""`laas bench` end to end on the embedded broker: a few participants, a few seconds.
+
+A functional test, not a timed one: it checks that every stage ran and the report is
+sane, never how fast anything was.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from laas.bench import ROTATION_OFF, BenchConfig, bench_scenario, format_report, run_bench
+from laas.errors import ConfigError
+from laas.hdmap import HdMap
+from laas.scenario import ErrorModel, simulate
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_bench_runs_end_to_end_on_the_embedded_broker() -> None:
+    lines: list[str] = []
+    config = BenchConfig(
+        participants=4,
+        rate=2.0,
+        duration=2.0,
+        brokers="embedded",
+        rotation_period=20.0,
+        processes=2,
+        privacy_speedup=50.0,
+    )
+    scenario = bench_scenario(4, rate=2.0, duration=2.0)
+    fixes = len(simulate(HdMap.load(scenario.map), scenario, ErrorModel(), seed=0).fixes)
+    report = run_bench(config, progress=lines.append)
+
+    assert report.brokers == "embedded-process"
+    assert report.processes == 2
+    assert report.sent == fixes >= 4 * 2 * 2
+    assert report.answered == report.sent, report.errors
+    assert report.error_replies == report.lost == 0
+    assert report.ldm.n == report.answered
+    assert 0 < report.ldm.p50 <= report.ldm.p95 <= report.ldm.p99 <= report.ldm.max
+    assert report.bare.n > 0 and report.bare.p50 > 0
+    assert report.overhead > 0 and math.isfinite(report.overhead)
+    assert report.throughput > 0
+    assert report.worker_answered == report.sent
+
+    rotating, fixed = report.privacy
+    assert rotating.rotation_period == 20.0 and fixed.rotation_period == ROTATION_OFF
+    assert rotating.rotations > 0  # 100 s of scenario at one rotation per 20 s
+    assert fixed.rotations == 0
+    for run in report.privacy:
+        assert run.answered == run.fixes == 303
+        assert 0.0 <= run.accuracy <= 1.0
+
+    text = format_report(report)
+    assert "LDM: fix -> corrected position" in text and "bare MQTT echo" in text
+    assert f"answered     {report.sent}/{report.sent} (100.0 %)" in text
+    assert "rotation every 20 s" in text and "rotation off" in text
+    assert json.loads(json.dumps(report.as_dict()))["share_answered"] == 1.0
+    assert any("sessions open" in line for line in lines)
+
+
+def test_bench_participants_stay_on_the_road() -> None:
+    scenario = bench_scenario(50, rate=1.0, duration=300.0, seed=3)
+    hdmap = HdMap.load(scenario.map)
+    trace = simulate(hdmap, scenario, ErrorModel(), seed=3)  # raises if one drives off
+    assert len({f.user for f in trace.fixes}) == 50
+    assert len(trace.fixes) >= 50 * 300
+    assert {f.lane for f in trace.fixes if f.kind == "bicycle"} == {3}
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"participants": 0}, {"rate": 0.0}, {"duration": -1.0}, {"rotation_period": 0.0}],
+)
+def test_bench_config_refuses_nonsense(bad: dict[str, float]) -> None:
+    with pytest.raises(ConfigError):
+        BenchConfig(**bad)  # type: ignore[arg-type]

@@ -646,6 +646,8 @@ def format_report(r: BenchReport) -> str:
                 f"  {label:<26} accuracy {p.accuracy:.3f}, AED {p.aed:.2f} m, "
                 f"{p.answered}/{p.fixes} answered, {p.rotations} rotations"
             )
+        if r.privacy[0].rotations == 0:
+            lines.append("  (the scenario lasts 100 s: shorter than this period, so no rotation)")
     for error in r.errors[:5]:
         lines.append(f"  e.g. {error}")
     return "\n".join(lines)

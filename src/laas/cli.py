@@ -70,12 +70,12 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
-    from laas.scenario import ErrorModel, get_scenario, simulate
+    from laas.scenario import get_scenario, simulate
     from laas.trace import format_measurement
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
-    errors = ErrorModel(sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
+    errors = scenario.errors.model_copy(update={"sigma_pos": a.sigma_pos, "sigma_vel": a.sigma_vel})
     trace = simulate(hdmap, scenario, errors, a.seed)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -125,11 +125,12 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
     from laas.engine import Engine
     from laas.plots import plot_lanes_over_time, plot_traces
-    from laas.scenario import ErrorModel, get_scenario, simulate
+    from laas.scenario import get_scenario, simulate
 
     scenario = get_scenario(name)
     hdmap = HdMap.load(scenario.map)
-    trace = simulate(hdmap, scenario, ErrorModel(sigma_pos=sigma_pos, sigma_vel=sigma_vel), seed)
+    errors = scenario.errors.model_copy(update={"sigma_pos": sigma_pos, "sigma_vel": sigma_vel})
+    trace = simulate(hdmap, scenario, errors, seed)
     out.mkdir(parents=True, exist_ok=True)
     paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
     for mode in ("paper", "default"):
@@ -219,13 +220,16 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from laas.evaluate import score
     from laas.participants import run_participants
-    from laas.scenario import ErrorModel, get_scenario, simulate
+    from laas.scenario import get_scenario, simulate
     from laas.trace import format_answer
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
     trace = simulate(
-        hdmap, scenario, ErrorModel(sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel), a.seed
+        hdmap,
+        scenario,
+        scenario.errors.model_copy(update={"sigma_pos": a.sigma_pos, "sigma_vel": a.sigma_vel}),
+        a.seed,
     )
     print(
         f"laas simulate: {len(trace.fixes)} fixes of {len(scenario.users)} road users "

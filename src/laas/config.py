@@ -73,5 +73,8 @@ class EngineConfig(BaseModel):
         default=0.05, description="random-walk drift of the common error, m/sqrt(s)"
     )
     bias_area: Positive = Field(
-        default=2_000.0, description="side of the square area that shares one common error, m"
+        default=2_000.0, description="size of the area that shares one common error, m"
+    )
+    bias_resolution: Positive = Field(
+        default=0.25, description="cell size of the common error's grid posterior, m"
     )

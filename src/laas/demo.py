@@ -18,7 +18,7 @@ from laas.evaluate import RunResult, score
 from laas.hdmap import HdMap
 from laas.participants import run_participants
 from laas.plots import plot_lanes_over_time, plot_traces
-from laas.scenario import ErrorModel, hamburg_scenario, simulate
+from laas.scenario import hamburg_scenario, simulate
 
 __all__ = ["run_demo"]
 
@@ -47,7 +47,7 @@ def run_demo(
     """Run the demo; print the table; write the pictures to `out`."""
     scenario = hamburg_scenario()
     hdmap = HdMap.load(scenario.map)
-    errors = ErrorModel(sigma_pos=sigma_pos, sigma_vel=sigma_vel)
+    errors = scenario.errors.model_copy(update={"sigma_pos": sigma_pos, "sigma_vel": sigma_vel})
     trace = simulate(hdmap, scenario, errors, seed)
     config = EngineConfig(sigma_pos=sigma_pos, sigma_vel=sigma_vel, sigma_heading=0.05)
     print(

@@ -84,7 +84,10 @@ class Engine:
         self._users: dict[str, _User] = {}
         self._groups: dict[str, _Group] = {}
         self._errors = CommonErrorField(
-            self.config.bias_area, self.config.bias_prior, self.config.bias_drift
+            self.config.bias_area,
+            self.config.bias_prior,
+            self.config.bias_drift,
+            self.config.bias_resolution,
         )
         # GNSS headings are true bearings; the map's frame is the UTM grid. Over one map
         # the meridian convergence (grid = true - convergence) is as good as constant.
@@ -294,12 +297,18 @@ class Engine:
         lane = int(result.lanes[0])
         posterior = result.marginals[0]
         state.belief = posterior
-        # The common error, observed across u's lane: z = n.(p - c) = n.b + v with the
-        # lane ambiguity moment-matched into r.
-        residual = g_u.d - g_u.offsets[lane]
-        ambiguity = float(posterior @ (g_u.offsets - g_u.offsets[lane]) ** 2)
-        z = residual + float(g_u.normal @ area.b)
-        area.update(g_u.normal, z, sigma[0] ** 2 + ambiguity)
+        # The common error, observed across u's lane by the raw fix (raw fixes have
+        # independent noise; the filtered ones do not, and would count one error many
+        # times), against every lane u may be on (its predicted lane probabilities).
+        fix = state.track.last_fix
+        s_raw, d_raw = segment.frame(fix.e, fix.n)
+        area.update(
+            g_u.normal,
+            d_raw,
+            segment.lane_offsets(s_raw),
+            prior,
+            math.sqrt(c.sigma_lane**2 + c.sigma_pos**2),
+        )
         # Place u: its re-corrected lateral offset fused with the lane centre,
         #   d = (o / s_lane^2 + d_m / s_m^2) / (1 / s_lane^2 + 1 / s_m^2).
         p = state.track.position - area.b

@@ -10,8 +10,9 @@ and scores the answers against the ground truth:
 
 The table shows the mean over runs. Errors are also split across and along the road
 (the true direction of travel), and before and after the common error became
-observable: the first time the users' true directions of travel so far span more than
-`OBSERVABLE_SPAN` degrees (until then no lane constraint says anything along the road).
+observable: the first time the orientations of the roads the users have driven so far
+span more than `OBSERVABLE_SPAN` degrees (until then no lane constraint says anything
+along the road).
 """
 
 from __future__ import annotations
@@ -130,9 +131,9 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
         heading = fix.true_heading
         if lo is None or hi is None:
             lo = hi = heading
-        else:  # the span of directions seen so far, on the circle around the first
-            rel = (heading - lo + 180.0) % 360.0 - 180.0
-            lo, hi = (lo + min(rel, 0.0)) % 360.0, max(hi, lo + max(rel, 0.0))
+        else:  # the span of road orientations seen so far (mod 180: both ways are one road)
+            rel = (heading - lo + 90.0) % 180.0 - 90.0
+            lo, hi = (lo + min(rel, 0.0)) % 180.0, max(hi, lo + max(rel, 0.0))
         observable[i] = (hi - lo) > OBSERVABLE_SPAN
         m = fix.measurement
         me, mn = proj.to_utm(m.longitude, m.latitude)
@@ -187,7 +188,6 @@ def evaluate(
     modes: Sequence[Mode] = ("paper", "default"),
     runs: int = 20,
     configs: Sequence[tuple[bool, float, float]] = TABLE_I_CONFIGS,
-    base_errors: ErrorModel | None = None,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> list[Row]:
@@ -196,7 +196,7 @@ def evaluate(
     The engine is told the sensor sigmas of each configuration, as the paper tunes its
     Kalman filter "by approximating the sensor accuracy".
     """
-    base = base_errors or ErrorModel()
+    base = scenario.errors
     jobs: list[tuple[Scenario, ErrorModel, EngineConfig, int]] = []
     keys: list[tuple[Mode, bool, float, float]] = []
     for mode in modes:
@@ -246,7 +246,7 @@ def evaluate(
                 aed_before=_mean([r.aed_before for r in mine]),
                 aed_after=_mean([r.aed_after for r in mine]),
                 raw_aed=_mean([r.raw_aed for r in mine]),
-                paper=PAPER_TABLE_I.get((kalman, sp)) if base == ErrorModel() else None,
+                paper=PAPER_TABLE_I.get((kalman, sp)) if scenario.name == "messe-hamburg" else None,
             )
         )
     return rows

@@ -75,6 +75,9 @@ class EngineConfig(BaseModel):
     bias_area: Positive = Field(
         default=2_000.0, description="size of the area that shares one common error, m"
     )
+    max_group: Annotated[int, Field(ge=1)] = Field(
+        default=32, description="default mode: most users in one joint lane search"
+    )
     bias_resolution: Positive = Field(
         default=0.25, description="cell size of the common error's grid posterior, m"
     )

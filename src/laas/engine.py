@@ -47,10 +47,42 @@ class EngineStats:
 
 
 @dataclass
+class _Place:
+    """Where a user was in its segment at its own last step, and the common error then."""
+
+    t: float
+    p: np.ndarray  # (2,) filtered position, common error not removed
+    v: np.ndarray  # (2,) velocity
+    b: np.ndarray  # (2,) the common error removed for s and d
+    s: float
+    d: float
+    offsets: np.ndarray
+    normal: np.ndarray
+    tangent: np.ndarray
+    lateral_var: float
+
+    def at(self, t: float, b: np.ndarray) -> _Geometry:
+        """The place predicted to time t with common error b, to first order:
+        d(t) = d + (v . n)(t - t_k) - n . (b - b_k), and likewise s along the tangent."""
+        dt = t - self.t
+        db = b - self.b
+        return _Geometry(
+            p=self.p + self.v * dt - b,
+            s=self.s + float(self.v @ self.tangent) * dt - float(self.tangent @ db),
+            d=self.d + float(self.v @ self.normal) * dt - float(self.normal @ db),
+            offsets=self.offsets,
+            normal=self.normal,
+            tangent=self.tangent,
+            lateral_var=self.lateral_var,
+        )
+
+
+@dataclass
 class _User:
     track: Track
     segment: Segment | None = None
     belief: np.ndarray | None = None  # default mode: (L,) lane probabilities in `segment`
+    place: _Place | None = None  # set at the user's own step in `segment`
 
 
 @dataclass
@@ -150,8 +182,12 @@ class Engine:
         if state.segment is None or state.segment.id != segment.id:
             self._join(user, state, segment)
         group = self._groups[segment.id]
-        members = self._members(group, user, t)
-        geometry = {v: self._geometry(self._users[v], segment, t, b) for v in members}
+        state.place = self._place(state, segment, b)
+        geometry = {user: state.place.at(t, b)}
+        for v in self._members(group, user, t)[1:]:
+            place = self._users[v].place
+            if place is not None:
+                geometry[v] = place.at(t, b)
         if c.mode == "paper":
             lane, probability, point = self._paper_step(user, segment, group, geometry)
         else:
@@ -206,6 +242,7 @@ class Engine:
             if not group.users:
                 del self._groups[segment.id]
         state.belief = None
+        state.place = None
         return belief
 
     def _members(self, group: _Group, user: str, t: float) -> list[str]:
@@ -219,13 +256,17 @@ class Engine:
             self._leave(v, self._users[v])
         return [user, *sorted(v for v in group.users if v != user)]
 
-    def _geometry(self, state: _User, segment: Segment, t: float, b: np.ndarray) -> _Geometry:
-        p = state.track.position_at(t) - b
-        s, d = segment.frame(float(p[0]), float(p[1]))
+    def _place(self, state: _User, segment: Segment, b: np.ndarray) -> _Place:
+        """A user's place in `segment` now, with the common error b removed."""
+        p = state.track.position
+        s, d = segment.frame(float(p[0] - b[0]), float(p[1] - b[1]))
         tangent = segment.tangent(s)
         normal = np.array([tangent[1], -tangent[0]])
-        return _Geometry(
+        return _Place(
+            t=state.track.t,
             p=p,
+            v=state.track.velocity,
+            b=b.copy(),
             s=s,
             d=d,
             offsets=segment.lane_offsets(s),
@@ -276,14 +317,22 @@ class Engine:
         prior = state.belief if state.belief is not None else np.full(lanes, 1.0 / lanes)
         prior = (prior @ transition) * direction
         prior /= prior.sum()
+        # The joint search only matters while the common error is uncertain across the
+        # road; then it takes u's nearest neighbours along the segment, at most max_group.
+        tau = max(area.sigma_along(g_u.normal), 1e-3)
+        gaps = np.diff(g_u.offsets)
         users = list(geometry)
+        if lanes > 1 and tau < 0.1 * float(gaps.min()):
+            users = [user]
+        elif len(users) > c.max_group:
+            near = sorted(users[1:], key=lambda v: abs(geometry[v].s - g_u.s))
+            users = [user, *near[: c.max_group - 1]]
         beliefs = [prior] + [
             b if (b := self._users[v].belief) is not None else np.full(lanes, 1.0 / lanes)
             for v in users[1:]
         ]
         gs = [geometry[v] for v in users]
         sigma = np.sqrt([c.sigma_lane**2 + g.lateral_var for g in gs])
-        tau = max(area.sigma_along(g_u.normal), 1e-3)
         with np.errstate(divide="ignore"):
             log_prior = np.log(np.array(beliefs))
         result = best_assignment(

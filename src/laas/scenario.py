@@ -11,6 +11,8 @@ walk) and per-fix Gaussian noise on position, speed and heading (paper section V
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -35,7 +37,19 @@ __all__ = [
     "simulate",
 ]
 
-MAPS = Path(__file__).resolve().parents[2] / "maps"
+
+def _maps() -> Path:
+    """The bundled maps: $LAAS_MAPS, else the checkout's maps/, else the installed copy."""
+    chosen = os.environ.get("LAAS_MAPS")
+    if chosen:
+        return Path(chosen)
+    checkout = Path(__file__).resolve().parents[2] / "maps"
+    if checkout.is_dir():
+        return checkout
+    return Path(sys.prefix) / "share" / "laas" / "maps"
+
+
+MAPS = _maps()
 EPOCH_MS = 1_700_000_000_000  # 2023-11-14T22:13:20Z, the scenario's t = 0
 
 

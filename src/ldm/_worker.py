@@ -21,16 +21,29 @@ _STOP = object()
 
 
 class Worker(Generic[_Item]):
-    """A named thread that calls ``handle(item)`` per queued item and ``tick(now)``."""
+    """A named thread that calls ``handle(item)`` per queued item and ``tick(now)``.
 
-    def __init__(self, name: str, interval: float) -> None:
+    With ``limit``, at most that many items wait: `offer` refuses what does not fit,
+    while `put` always queues (for the few control events that must never be lost,
+    such as a reconnect).
+    """
+
+    def __init__(self, name: str, interval: float, limit: int | None = None) -> None:
         self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
         self._interval = interval
+        self._limit = limit
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def put(self, item: _Item) -> None:
         """Hand an item to the worker; safe from any thread, never blocks."""
         self._queue.put(item)
+
+    def offer(self, item: _Item) -> bool:
+        """Queue an item unless ``limit`` items already wait; False if it was dropped."""
+        if self._limit is not None and self._queue.qsize() >= self._limit:
+            return False
+        self._queue.put(item)
+        return True
 
     def start_worker(self) -> None:
         self._thread.start()

@@ -123,6 +123,13 @@ class CoreConfig(_Settings):
     A session with no input for ``idle_timeout`` seconds is dropped. Services that are
     not re-announced within ``service_ttl`` seconds disappear from every list. Data
     older than ``max_age`` seconds (by its send timestamp) is dropped, never delivered late.
+
+    Protection against misbehaving participants (each refusal is answered with a
+    ``rejected`` notice on the participant's session topic and counted in `CoreStats`):
+    a token bucket per participant client id admits ``rate`` messages per second on
+    average and ``burst`` at once; payloads over ``max_payload`` bytes are refused
+    before they are parsed; input stamped more than ``max_clock_skew`` seconds in the
+    future is refused (it would escape the ``max_age`` check).
     """
 
     name: str
@@ -134,6 +141,12 @@ class CoreConfig(_Settings):
     service_ttl: float = Field(default=30.0, gt=0)
     max_age: float = Field(default=2.0, gt=0)
     data_qos: int = Field(default=0, ge=0, le=2)
+    rate: float = Field(default=200.0, gt=0)
+    burst: float = Field(default=400.0, ge=1)
+    max_payload: int = Field(default=64 * 1024, ge=256)
+    max_clock_skew: float = Field(default=30.0, gt=0)
+    max_queue: int = Field(default=100_000, ge=1)
+    """Messages waiting for the core's worker; more are dropped (``dropped_overload``)."""
 
     _check_name = field_validator("name")(_name)
 
@@ -150,13 +163,24 @@ class CoreConfig(_Settings):
 
 
 class ProviderConfig(_Settings):
-    """A service provider: its cluster broker and how often it re-announces."""
+    """A service provider: its cluster broker and how often it re-announces.
+
+    Load shedding: at most ``max_queue`` inputs wait for the handler; more are dropped
+    on arrival (``ProviderStats.dropped_overload``), and input older than ``max_age``
+    when its turn comes is dropped (``dropped_stale``), so a slow handler never works
+    through a backlog nobody waits for. Payloads over ``max_payload`` bytes are dropped
+    unread; at most ``cipher_cache`` derived session ciphers are kept (least recently
+    used go first).
+    """
 
     broker: BrokerSettings
     announce_interval: float = Field(default=10.0, gt=0)
     max_age: float = Field(default=2.0, gt=0)
     data_qos: int = Field(default=0, ge=0, le=2)
     client_id: str | None = None
+    max_queue: int = Field(default=10_000, ge=1)
+    max_payload: int = Field(default=64 * 1024, ge=256)
+    cipher_cache: int = Field(default=50_000, ge=1)
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
 

@@ -10,14 +10,20 @@ backbone broker (every core connects there). It
   participant's current ephemeral key; a new key gets a new pseudonym (rotation),
   the old one is honoured for ``grace`` seconds; idle sessions are dropped;
 - routes ciphertext: participant input leaves the user cluster under the pseudonym
-  only; replies come back by pseudonym and are mapped to the participant here.
+  only; replies come back by pseudonym and are mapped to the participant here;
+- guards the user cluster: per-participant token bucket (``rate``, ``burst``), payload
+  size limit, clock-skew check; every refusal of a participant's message is counted
+  and answered on its session topic (a ``rejected``, ``refused`` or ``nosession``
+  notice), and touches no other participant's state.
 
 All state lives on the core's worker thread; paho's threads only enqueue events.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import re
 import secrets
 import time
 from dataclasses import dataclass, field
@@ -31,6 +37,7 @@ from ldm.messages import (
     Announcement,
     CoreStatus,
     Envelope,
+    Rejection,
     ServiceDescription,
     ServiceList,
     SessionGrant,
@@ -45,6 +52,9 @@ log = logging.getLogger(__name__)
 
 _CLUSTER = "cluster"
 _BACKBONE = "backbone"
+_MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
+_TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_NOTICE_RATE = 10.0  # rejection notices per second and client, so refusing costs little
 
 
 def new_pseudonym() -> str:
@@ -78,6 +88,33 @@ class _Session:
 
 
 @dataclass(slots=True)
+class _Bucket:
+    """A token bucket: ``rate`` tokens per second, at most ``burst`` saved up."""
+
+    tokens: float
+    stamp: float
+
+    def take(self, now: float, rate: float, burst: float) -> bool:
+        self.tokens = min(burst, self.tokens + (now - self.stamp) * rate)
+        self.stamp = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+    def full(self, now: float, rate: float, burst: float) -> bool:
+        return self.tokens + (now - self.stamp) * rate >= burst
+
+
+@dataclass(slots=True)
+class _Limits:
+    """One participant's input bucket and the bucket of notices that answer refusals."""
+
+    input: _Bucket
+    notices: _Bucket
+
+
+@dataclass(slots=True)
 class _Route:
     user_core: str
     last_seen: float
@@ -92,6 +129,12 @@ class CoreStats:
     dropped_stale: int = 0
     dropped_unroutable: int = 0
     dropped_invalid: int = 0
+    dropped_overload: int = 0
+    rejected_rate: int = 0
+    rejected_size: int = 0
+    rejected_clock: int = 0
+    notices_suppressed: int = 0
+    """Refusals not answered because the client's notice bucket was empty."""
     rotations: int = 0
     sessions_expired: int = 0
 
@@ -100,7 +143,7 @@ class Core(Worker[Event]):
     """An LDM core. ``start()`` connects and runs it in background threads; ``stop()`` ends it."""
 
     def __init__(self, config: CoreConfig) -> None:
-        super().__init__(f"ldm-core-{config.name}", config.tick)
+        super().__init__(f"ldm-core-{config.name}", config.tick, limit=config.max_queue)
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
@@ -108,9 +151,10 @@ class Core(Worker[Event]):
         self._sessions: dict[tuple[str, str], _Session] = {}
         self._pseudonyms: dict[str, _Session] = {}
         self._routes: dict[str, _Route] = {}
+        self._limits: dict[str, _Limits] = {}
         self._published_list: list[ServiceDescription] | None = None
         self.cluster = Transport(
-            config.cluster, client_id=f"ldm-core-{self.name}", sink=self.put, name=_CLUSTER
+            config.cluster, client_id=f"ldm-core-{self.name}", sink=self._sink, name=_CLUSTER
         )
         for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER):
             self.cluster.subscribe(flt, 1)
@@ -121,7 +165,7 @@ class Core(Worker[Event]):
             self.backbone = Transport(
                 config.backbone,
                 client_id=f"ldm-core-{self.name}-bb",
-                sink=self.put,
+                sink=self._sink,
                 name=_BACKBONE,
                 will=Will(topics.bb_core(self.name), offline, qos=1, retain=True),
             )
@@ -187,6 +231,13 @@ class Core(Worker[Event]):
     def session_count(self) -> int:
         return len(self._sessions)
 
+    def _sink(self, event: Event) -> None:
+        """paho's thread: queue the event; past ``max_queue`` drop messages, never connects."""
+        if isinstance(event, Connected):
+            self.put(event)
+        elif not self.offer(event):
+            self.stats.dropped_overload += 1
+
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
@@ -209,6 +260,12 @@ class Core(Worker[Event]):
         for pseudonym, route in list(self._routes.items()):
             if now - route.last_seen > self.config.idle_timeout + self.config.grace:
                 del self._routes[pseudonym]
+        cfg = self.config
+        for client, limits in list(self._limits.items()):
+            if limits.input.full(now, cfg.rate, cfg.burst) and limits.notices.full(
+                now, _NOTICE_RATE, _NOTICE_RATE
+            ):
+                del self._limits[client]  # a full bucket is the same as no bucket
 
     def _on_connected(self, source: str) -> None:
         if source == _CLUSTER:
@@ -222,15 +279,8 @@ class Core(Worker[Event]):
                     self._announce_backbone(name, svc)
 
     def _from_cluster(self, msg: Message, levels: list[str]) -> None:
-        # ldm/p/{client}/up/session | ldm/p/{client}/up/data/{service}
         if levels[1] == "p" and len(levels) >= 5:
-            client = levels[2]
-            if levels[4] == "session" and len(levels) == 5:
-                self._session_request(client, SessionRequest.model_validate_json(msg.payload))
-            elif levels[4] == "data" and len(levels) == 6:
-                self._participant_input(
-                    client, levels[5], Envelope.model_validate_json(msg.payload)
-                )
+            self._from_participant(msg, levels)
         elif levels[1] == "svc" and len(levels) >= 4:
             service = levels[2]
             if levels[3] == "announce":
@@ -264,6 +314,93 @@ class Core(Worker[Event]):
         elif kind == "out" and len(levels) == 6:
             # ldm/bb/out/{me}/{service}/{pseudonym}
             self._deliver(levels[4], levels[5], Envelope.model_validate_json(msg.payload))
+
+    # --- participant input: the user cluster's boundary ---------------------------------
+
+    def _from_participant(self, msg: Message, levels: list[str]) -> None:
+        """``ldm/p/{client}/up/session`` or ``ldm/p/{client}/up/data/{service}``.
+
+        In order, each cheaper than the next: the client's token bucket, the size
+        limit, then decoding. Every refusal is counted and answered to this client only.
+        """
+        client = levels[2]
+        is_session = levels[4] == "session" and len(levels) == 5
+        is_data = levels[4] == "data" and len(levels) == 6
+        service = levels[5] if is_data else ""
+        cfg = self.config
+        now = time.time()
+        limits = self._limits.get(client)
+        if limits is None:
+            limits = _Limits(_Bucket(cfg.burst, now), _Bucket(_NOTICE_RATE, now))
+            self._limits[client] = limits
+        if not limits.input.take(now, cfg.rate, cfg.burst):
+            self.stats.rejected_rate += 1
+            self._reject(
+                client,
+                service,
+                "rate_limited",
+                f"more than {cfg.rate:g} messages per second (burst {cfg.burst:g}); slow down",
+                payload=msg.payload,
+            )
+            return
+        if len(msg.payload) > cfg.max_payload:
+            self.stats.rejected_size += 1
+            self._reject(
+                client,
+                service,
+                "too_large",
+                f"payload: {len(msg.payload)} bytes is over the limit of {cfg.max_payload}",
+            )
+            return
+        if not (is_session or is_data):
+            self.stats.dropped_invalid += 1
+            self._reject(
+                client,
+                service,
+                "invalid",
+                f"topic: {msg.topic!r} is neither .../up/session nor .../up/data/SERVICE",
+            )
+            return
+        try:
+            if is_session:
+                self._session_request(client, SessionRequest.model_validate_json(msg.payload))
+            else:
+                self._participant_input(
+                    client, service, Envelope.model_validate_json(msg.payload), now
+                )
+        except ValidationError as exc:
+            self.stats.dropped_invalid += 1
+            what = "session request" if is_session else "input envelope"
+            error = f"{what}: {describe(exc)}"
+            self._reject(client, service, "invalid", error, payload=msg.payload)
+
+    def _reject(
+        self,
+        client: str,
+        service: str,
+        reason: Rejection,
+        error: str,
+        *,
+        c: str | None = None,
+        payload: bytes = b"",
+    ) -> None:
+        """Answer a refused message on the client's session topic, within its notice bucket.
+
+        The correlation id is ``c``, or read from ``payload`` only once the notice is
+        admitted, so a flood costs no parsing.
+        """
+        limits = self._limits.get(client)
+        if limits is not None and not limits.notices.take(time.time(), _NOTICE_RATE, _NOTICE_RATE):
+            self.stats.notices_suppressed += 1
+            return
+        notice = SessionNotice(
+            kind="rejected",
+            service=service,
+            c=c if c is not None else correlation(payload),
+            reason=reason,
+            error=error,
+        )
+        self._notify(client, notice)
 
     # --- services ---------------------------------------------------------------------
 
@@ -377,7 +514,15 @@ class Core(Worker[Event]):
             return True
         return False
 
-    def _participant_input(self, client: str, service: str, env: Envelope) -> None:
+    def _participant_input(self, client: str, service: str, env: Envelope, now: float) -> None:
+        if env.t > now + self.config.max_clock_skew:
+            self.stats.rejected_clock += 1
+            error = (
+                f"t: {env.t - now:.0f} s ahead of the core's clock (limit "
+                f"{self.config.max_clock_skew:g} s); synchronise the clock"
+            )
+            self._reject(client, service, "clock", error, c=env.c)
+            return
         if self._stale(env):
             return
         session = self._sessions.get((client, service))
@@ -419,6 +564,8 @@ class Core(Worker[Event]):
         if current is not None:
             current.until = now + self.config.grace
             session.old.append(current)
+            if len(session.old) > _MAX_OLD:  # a client that churns keys keeps only a few
+                self._pseudonyms.pop(session.old.pop(0).name, None)
             self.stats.rotations += 1
         session.current = fresh
         session.rotate_sent = False
@@ -471,3 +618,19 @@ class Core(Worker[Event]):
             if current and not session.rotate_sent and now - current.created >= cfg.rotation_period:
                 session.rotate_sent = True
                 self._notify(session.client, SessionNotice(kind="rotate", service=session.service))
+
+
+def describe(error: ValidationError) -> str:
+    """pydantic's errors as ``field: problem; ...`` (the field dotted, or ``payload``)."""
+    return "; ".join(
+        f"{'.'.join(str(x) for x in e['loc']) or 'payload'}: {e['msg']}" for e in error.errors()
+    )
+
+
+def correlation(payload: bytes) -> str | None:
+    """The correlation id ``c`` of a JSON object payload, if it has a well-formed one."""
+    try:
+        value = json.loads(payload).get("c")
+    except (ValueError, AttributeError, RecursionError):
+        return None
+    return value if isinstance(value, str) and _TOKEN.fullmatch(value) else None

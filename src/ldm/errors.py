@@ -5,6 +5,7 @@ LdmError
 ├── ConnectError       a broker could not be reached in time
 ├── ServiceNotFound    the requested service is not in the cluster's service list
 ├── SessionError       the core refused or lost a session
+│   └── RequestRejected  the core refused one input (malformed, too large, rate limit)
 ├── RequestTimeout     no reply arrived in time (also a TimeoutError)
 └── CryptoError        a payload could not be decrypted or a key is malformed
 """
@@ -16,6 +17,7 @@ __all__ = [
     "ConnectError",
     "CryptoError",
     "LdmError",
+    "RequestRejected",
     "RequestTimeout",
     "ServiceNotFound",
     "SessionError",
@@ -40,6 +42,19 @@ class ServiceNotFound(LdmError, LookupError):
 
 class SessionError(LdmError):
     """The core refused a session or no longer knows it."""
+
+
+class RequestRejected(SessionError):
+    """The core refused one input; ``reason`` says why (see `ldm.messages.Rejection`).
+
+    ``rate_limited``: slow down (the core's per-participant rate and burst);
+    ``too_large``: the payload is over the core's ``max_payload``; ``invalid``: the
+    message was malformed; ``clock``: its time is too far ahead of the core's clock.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class RequestTimeout(LdmError, TimeoutError):

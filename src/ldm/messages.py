@@ -15,6 +15,7 @@ __all__ = [
     "Announcement",
     "CoreStatus",
     "Envelope",
+    "Rejection",
     "ServiceDescription",
     "ServiceList",
     "ServiceSpec",
@@ -29,9 +30,12 @@ _B64 = r"^[A-Za-z0-9+/=]*$"
 
 
 class _Wire(BaseModel):
-    """Immutable; unknown fields are dropped, so a core forwards only what it knows."""
+    """Immutable; unknown fields are dropped, so a core forwards only what it knows.
 
-    model_config = ConfigDict(frozen=True, extra="ignore")
+    NaN and infinities are refused: a time of NaN would pass every age check.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
 
 
 class ServiceSpec(_Wire):
@@ -94,20 +98,26 @@ class SessionGrant(_Wire):
     data_qos: int
 
 
+Rejection = Literal["invalid", "too_large", "rate_limited", "clock"]
+
+
 class SessionNotice(_Wire):
     """User core -> participant, on ``ldm/p/{client}/down/session``.
 
     ``grant``: the session is open (``grant`` set). ``refused``: no such service
     (``error`` says why). ``rotate``: start a new ephemeral key now; the core gives
     it a new pseudonym. ``nosession``: the core does not know this session (idle,
-    or the core restarted); request it again.
+    or the core restarted); request it again. ``rejected``: the core refused one
+    message of the participant (``reason``; ``error`` names the field and the
+    problem; ``c`` is the message's correlation id when it could be read).
     """
 
-    kind: Literal["grant", "refused", "rotate", "nosession"]
+    kind: Literal["grant", "refused", "rotate", "nosession", "rejected"]
     service: str
     c: str | None = None
     grant: SessionGrant | None = None
     error: str | None = None
+    reason: Rejection | None = None
 
 
 class Envelope(_Wire):

@@ -29,7 +29,14 @@ from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, ParticipantConfig, build
 from ldm.crypto import KeyPair, SessionCipher
-from ldm.errors import CryptoError, RequestTimeout, ServiceNotFound, SessionError
+from ldm.errors import (
+    ConnectError,
+    CryptoError,
+    RequestRejected,
+    RequestTimeout,
+    ServiceNotFound,
+    SessionError,
+)
 from ldm.messages import (
     Envelope,
     ServiceDescription,
@@ -68,6 +75,7 @@ class _Pending:
     keys: _Keys
     plaintext: bytes
     sent: float
+    disconnects: int = 0  # the transport's count when sent
 
 
 class Session:
@@ -124,10 +132,18 @@ class Session:
     def _send(self, c: str, pending: _Pending) -> None:
         keys = pending.keys
         pending.sent = time.time()
+        pending.disconnects = self._participant.transport.disconnects
         env = Envelope(
             c=c, t=pending.sent, k=keys.pair.public, d=keys.cipher.seal(pending.plaintext, c)
         )
-        self._participant._publish_input(self, env)
+        if not self._participant._publish_input(self, env):
+            self._fail(
+                c,
+                ConnectError(
+                    f"input for {self.service.name!r} not sent: no connection to the broker "
+                    "(QoS 0 is not queued) or the send queue is full"
+                ),
+            )
 
     # --- participant's worker thread --------------------------------------------------
 
@@ -169,13 +185,18 @@ class Session:
         for p in pending:
             p.future.set_exception(error)
 
-    def _expire(self, now: float, limit: float) -> None:
+    def _expire(self, now: float, limit: float, disconnects: int) -> None:
         with self._lock:
             old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
             for c, _ in old:
                 del self._pending[c]
         for _, p in old:
-            p.future.set_exception(RequestTimeout("no reply in time; the input or reply was stale"))
+            why = "the input or its reply was lost or dropped as stale"
+            if disconnects != p.disconnects:
+                why = "the connection to the broker dropped meanwhile; " + why
+            p.future.set_exception(
+                RequestTimeout(f"no reply from {self.service.name!r} within {limit:g} s: {why}")
+            )
 
 
 class Participant(Worker[Event]):
@@ -184,7 +205,11 @@ class Participant(Worker[Event]):
     def __init__(self, config: ParticipantConfig) -> None:
         super().__init__("ldm-participant", 0.25)
         self.config = config
-        self.client_id = config.client_id or f"ldm-p-{secrets.token_hex(6)}"
+        # With credentials the client id defaults to the user name: a broker that sets
+        # use_username_as_clientid (docs/security.md) forces the same.
+        self.client_id = (
+            config.client_id or config.broker.username or f"ldm-p-{secrets.token_hex(6)}"
+        )
         self._services: list[ServiceDescription] = []
         self._have_list = threading.Event()
         self._opening: dict[str, Future[SessionGrant]] = {}
@@ -257,10 +282,10 @@ class Participant(Worker[Event]):
             self._sessions[service] = session
         return session
 
-    def _publish_input(self, session: Session, env: Envelope) -> None:
+    def _publish_input(self, session: Session, env: Envelope) -> bool:
         qos = self.config.data_qos if self.config.data_qos is not None else session.grant.data_qos
         topic = topics.participant_input(self.client_id, session.service.name)
-        self.transport.publish(topic, env.encode(), qos)
+        return self.transport.publish(topic, env.encode(), qos)
 
     def _reopen(self, session: Session) -> None:
         now = time.time()
@@ -320,6 +345,16 @@ class Participant(Worker[Event]):
                 session._fail_all(error)  # the session cannot be re-opened
             elif session is not None:
                 session._fail(notice.c, error)
+        elif notice.kind == "rejected":
+            rejected = RequestRejected(
+                notice.reason or "invalid", f"the core refused the input: {notice.error}"
+            )
+            with self._lock:
+                opening = self._opening.get(notice.c or "")
+            if opening is not None:
+                opening.set_exception(rejected)
+            elif session is not None:
+                session._fail(notice.c, rejected)
         elif notice.kind == "rotate" and session is not None:
             session._rotate()
         elif notice.kind == "nosession" and session is not None:
@@ -336,6 +371,6 @@ class Participant(Worker[Event]):
     def tick(self, now: float) -> None:
         limit = 2 * self.config.max_age + 1.0
         for session in list(self._sessions.values()):
-            session._expire(now, limit)
+            session._expire(now, limit, self.transport.disconnects)
             if session._reopen_c is not None:
                 self._reopen(session)

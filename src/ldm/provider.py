@@ -35,8 +35,6 @@ __all__ = ["Handler", "Provider", "ProviderStats", "Request"]
 
 log = logging.getLogger(__name__)
 
-_CACHE = 50_000  # derived session ciphers kept (one per live pseudonym)
-
 
 @dataclass(frozen=True, slots=True)
 class Request:
@@ -61,6 +59,9 @@ class ProviderStats:
     replies: int = 0
     dropped_stale: int = 0
     dropped_invalid: int = 0
+    dropped_oversize: int = 0
+    dropped_overload: int = 0
+    """Input dropped on arrival because ``max_queue`` inputs were already waiting."""
     handler_errors: int = 0
 
 
@@ -75,7 +76,11 @@ class Provider(Worker[Event]):
         *,
         key: KeyPair | None = None,
     ) -> None:
-        super().__init__(f"ldm-provider-{spec.name}", min(0.5, config.announce_interval / 4))
+        super().__init__(
+            f"ldm-provider-{spec.name}",
+            min(0.5, config.announce_interval / 4),
+            limit=config.max_queue,
+        )
         self.config = config
         self.key = key or KeyPair()
         self.description = ServiceDescription(**spec.model_dump(), public_key=self.key.public)
@@ -89,7 +94,7 @@ class Provider(Worker[Event]):
         self.transport = Transport(
             config.broker,
             client_id=client_id,
-            sink=self.put,
+            sink=self._sink,
             name=f"provider-{spec.name}",
             will=Will(topics.announce(spec.name), b"", qos=1, retain=True),
         )
@@ -139,6 +144,18 @@ class Provider(Worker[Event]):
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
         self._send(cipher, pseudonym, correlation_id, payload)
 
+    @property
+    def cached_ciphers(self) -> int:
+        """Derived session ciphers held now (at most ``cipher_cache``)."""
+        return len(self._ciphers)
+
+    def _sink(self, event: Event) -> None:
+        """paho's thread: shed input past ``max_queue`` (counted); never drop a reconnect."""
+        if isinstance(event, Connected):
+            self.put(event)
+        elif not self.offer(event):
+            self.stats.dropped_overload += 1
+
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
@@ -163,12 +180,17 @@ class Provider(Worker[Event]):
         if cipher is None:
             cipher = self.key.cipher(key, initiator=False)
             self._ciphers[key] = cipher
-            if len(self._ciphers) > _CACHE:
+            if len(self._ciphers) > self.config.cipher_cache:
                 self._ciphers.popitem(last=False)
+        else:
+            self._ciphers.move_to_end(key)
         return cipher
 
     def _input(self, msg: Message) -> None:
         pseudonym = msg.topic.rsplit("/", 1)[-1]
+        if len(msg.payload) > self.config.max_payload:
+            self.stats.dropped_oversize += 1
+            return
         try:
             env = Envelope.model_validate_json(msg.payload)
             if env.k is None:
@@ -180,13 +202,13 @@ class Provider(Worker[Event]):
             payload = json.loads(cipher.open(env.d, env.c))
             if not isinstance(payload, dict):
                 raise CryptoError("payload is not a JSON object")
-        except (ValidationError, CryptoError, ValueError):
+        except (ValidationError, CryptoError, ValueError, RecursionError):
             self.stats.dropped_invalid += 1
             return
         new = pseudonym not in self._by_pseudonym
         self._by_pseudonym[pseudonym] = cipher
         self._by_pseudonym.move_to_end(pseudonym)
-        if len(self._by_pseudonym) > _CACHE:
+        if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
         self.stats.requests += 1
         request = Request(pseudonym, env.c, payload, env.t, new)

@@ -93,6 +93,8 @@ class Transport:
         self._lock = threading.Lock()
         self._connected = threading.Event()
         self._started = False
+        self.disconnects = 0
+        """Connections lost so far (a participant uses it to explain a lost request)."""
         client = mqtt.Client(
             CallbackAPIVersion.VERSION2,
             client_id=client_id,
@@ -128,6 +130,8 @@ class Transport:
         self._sink(Connected(self.name))
 
     def _on_disconnect(self, _c: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
+        if self._connected.is_set():
+            self.disconnects += 1
         self._connected.clear()
         if self._started:
             log.info("%s: disconnected (%s), reconnecting with back-off", self.name, reason)
@@ -163,9 +167,17 @@ class Transport:
     def wait_connected(self, timeout: float) -> bool:
         return self._connected.wait(timeout)
 
-    def publish(self, topic: str, payload: bytes, qos: int = 0, retain: bool = False) -> None:
-        """Queue a message for sending; never waits for the broker."""
-        self._client.publish(topic, payload, qos=qos, retain=retain)
+    def publish(self, topic: str, payload: bytes, qos: int = 0, retain: bool = False) -> bool:
+        """Queue a message for sending; never waits for the broker.
+
+        False when paho could not take it: QoS 0 while disconnected (paho drops it), or
+        paho's queue of unacknowledged QoS 1/2 messages is full. QoS 1/2 messages taken
+        while disconnected are sent after the reconnect.
+        """
+        info = self._client.publish(topic, payload, qos=qos, retain=retain)
+        if info.rc == mqtt.MQTT_ERR_SUCCESS:
+            return True
+        return qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN
 
     def publish_and_wait(
         self, topic: str, payload: bytes, qos: int = 1, retain: bool = False, timeout: float = 2.0

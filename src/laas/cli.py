@@ -295,6 +295,22 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
     )
 
 
+def _cmd_bench_filter(a: argparse.Namespace) -> int:
+    from laas.filterbench import bench_filter, format_filter_table
+
+    counts = [n for n in (1, 2, 3, 4, 6, 8, 10, 20, 50, 100, 200) if n <= a.max_users]
+    rows = bench_filter(
+        counts,
+        steps=a.steps,
+        progress=None if a.json else lambda n: print(f"  {n} users", file=sys.stderr),
+    )
+    if a.json:
+        print(json.dumps([r.as_dict() for r in rows], indent=1))
+    else:
+        print(format_filter_table(rows))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -369,6 +385,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--plot", metavar="DIR", help="also write the pictures to DIR")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser(
+        "bench-filter", help="lane filter time per update against users in a segment"
+    )
+    p.add_argument("--max-users", type=int, default=100, help="largest group (default 100)")
+    p.add_argument("--steps", type=int, default=10, help="timed steps per group size")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_bench_filter)
 
     p = sub.add_parser("scenario", help="write a simulated trace and its ground truth")
     p.add_argument("--scenario", default="messe-hamburg")

@@ -1,0 +1,48 @@
+"""LaaS end to end through the paper's three-broker deployment, against offline replay."""
+
+from __future__ import annotations
+
+import pytest
+
+from laas.config import EngineConfig
+from laas.deployment import LocalDeployment
+from laas.engine import Engine
+from laas.evaluate import score
+from laas.hdmap import HdMap
+from laas.participants import run_participants
+from laas.scenario import hamburg_scenario, simulate
+from ldm.pytest_plugin import broker_kind
+from ldm.testing import BrokerKind
+
+__all__ = ["broker_kind"]
+
+CONFIG = EngineConfig(sigma_pos=1.0, sigma_vel=0.25, sigma_heading=0.05)
+
+
+@pytest.fixture(scope="module")
+def hamburg() -> HdMap:
+    return HdMap.load(hamburg_scenario().map)
+
+
+@pytest.mark.parametrize(
+    "rotation_period",
+    [pytest.param(1e6, id="rotation-off"), pytest.param(120.0, id="rotation-default")],
+)
+def test_live_accuracy_matches_offline_replay(
+    hamburg: HdMap, broker_kind: BrokerKind, rotation_period: float
+) -> None:
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg, scenario, scenario.errors, seed=4)
+    engine = Engine(hamburg, CONFIG)
+    offline = score(hamburg, trace, [engine.process(f.user, f.measurement) for f in trace.fixes])
+    with LocalDeployment(
+        hamburg, CONFIG, brokers=broker_kind, rotation_period=rotation_period
+    ) as deployment:
+        live = run_participants(deployment.user_url, trace, speedup=20.0)
+        assert deployment.service is not None
+        assert deployment.service.stats.answered == len(trace.fixes)
+    assert live.errors == []
+    assert live.answered == len(trace.fixes)
+    online = score(hamburg, trace, live.answers)
+    assert abs(online.accuracy - offline.accuracy) <= 0.02
+    assert online.accuracy > 0.9

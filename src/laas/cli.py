@@ -325,9 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speedup", type=float, default=10.0, help="faster than real time by")
     p.add_argument(
         "--brokers",
-        choices=["auto", "embedded", "mosquitto"],
+        choices=["auto", "embedded", "embedded-process", "mosquitto"],
         default="auto",
-        help="broker kind (auto: Mosquitto if installed)",
+        help="broker kind (auto: Mosquitto if installed, else the embedded broker)",
     )
     p.set_defaults(func=_cmd_demo)
 

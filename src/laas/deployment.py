@@ -16,11 +16,11 @@ from laas.config import EngineConfig
 from laas.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
-from ldm.testing import RunningBroker, find_mosquitto, start_broker
+from ldm.testing import BrokerKind, RunningBroker, find_mosquitto, start_broker
 
 __all__ = ["BrokerChoice", "LocalDeployment"]
 
-BrokerChoice = Literal["auto", "embedded", "mosquitto"]
+BrokerChoice = Literal["auto", "embedded", "embedded-process", "mosquitto"]
 
 
 class LocalDeployment:
@@ -37,7 +37,7 @@ class LocalDeployment:
     ) -> None:
         self.hdmap = hdmap
         self.config = config
-        self.kind: Literal["embedded", "mosquitto"] = (
+        self.kind: BrokerKind = (
             ("mosquitto" if find_mosquitto() else "embedded") if brokers == "auto" else brokers
         )
         self.rotation_period = rotation_period

@@ -6,11 +6,30 @@ new track; the common-error estimate, which is not per user, carries the group o
 and answers each accepted fix with a `CorrectedPosition`. A fix it cannot use gets an
 error reply that names the field and the problem. The handler runs on the provider's
 one worker thread, so the engine needs no lock.
+
+What the worker refuses, each with an error reply ``{"error": {"kind", "message",
+"fields"}}`` and a counter in `WorkerStats`, touching no other pseudonym's state:
+
+- ``invalid``: not a `GpsMeasurement` (wrong types, missing or unknown fields, NaN,
+  infinities, latitude/longitude out of range);
+- ``outside``: a fix farther than ``max_distance`` metres from the map's bounds (the
+  service area; it would also pull the shared common-error estimate);
+- ``clock``: a timestamp more than ``max_past`` seconds behind the worker's wall clock,
+  or, for a pseudonym's first fix, more than ``max_future`` seconds ahead of it. Later
+  fixes of the same pseudonym may run ahead of the wall clock by up to ``max_speedup``
+  times the time since its first fix (plus ``max_future``): a simulator sped up by a
+  factor s sends timestamps that run ahead by (1 - 1/s) of the scenario time;
+- ``stale``: a duplicate, or older than the pseudonym's last fix;
+- ``internal``: the engine failed on this fix (logged; a bug to report).
+
+Tracks are expired by the wall clock (``wall_clock``), not by the newest timestamp
+seen, so no participant's clock can expire another's track.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -50,6 +69,9 @@ class WorkerStats:
     answered: int = 0
     invalid: int = 0
     refused: int = 0  # duplicates and fixes older than the track's last
+    outside: int = 0
+    clock: int = 0
+    failed: int = 0
 
 
 def _error(kind: str, message: str, fields: list[dict[str, str]] | None = None) -> dict[str, Any]:
@@ -66,13 +88,30 @@ class LaasService:
         *,
         expire_every: float = 1.0,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+        max_future: float = 30.0,
+        max_past: float = 600.0,
+        max_speedup: float = 100.0,
+        max_distance: float = 10_000.0,
     ) -> None:
         self.engine = Engine(hdmap, config)
         self.stats = WorkerStats()
+        self._map = hdmap
         self._clock = clock
+        self._wall = wall_clock
+        self.max_future = max_future
+        self.max_past = max_past
+        self.max_speedup = max_speedup
+        self.max_distance = max_distance
         self._expire_every = expire_every
         self._next_expiry = clock() + expire_every
-        self._latest_ms = 0
+        # pseudonym -> (timestamp of its first accepted fix, wall clock then), seconds
+        self._anchors: dict[str, tuple[float, float]] = {}
+
+    @property
+    def sessions(self) -> int:
+        """Pseudonyms the worker holds state for (tracks and clock anchors)."""
+        return len(self._anchors)
 
     def handle(self, request: Request) -> Mapping[str, Any]:
         """One fix of one pseudonym -> its corrected position, or an error reply."""
@@ -86,12 +125,24 @@ class LaasService:
             ]
             summary = "; ".join(f"{f['field']}: {f['problem']}" for f in fields)
             return _error("invalid", f"measurement refused: {summary}", fields)
-        answer = self.engine.process(request.pseudonym, measurement)
-        self._latest_ms = max(self._latest_ms, measurement.timestamp)
-        now = self._clock()
-        if now >= self._next_expiry:
-            self.engine.expire(self._latest_ms)
-            self._next_expiry = now + self._expire_every
+        now = self._wall()
+        refusal = self._check_clock(request.pseudonym, measurement.timestamp / 1000.0, now)
+        if refusal is None:
+            refusal = self._check_area(measurement)
+        if refusal is not None:
+            return refusal
+        try:
+            answer = self.engine.process(request.pseudonym, measurement)
+        except Exception:
+            self.stats.failed += 1
+            log.exception("the engine failed on a fix")
+            return _error("internal", "the service failed on this fix; it has been logged")
+        self._anchors.setdefault(request.pseudonym, (measurement.timestamp / 1000.0, now))
+        tick = self._clock()
+        if tick >= self._next_expiry:
+            for gone in self.engine.expire(int(now * 1000)):
+                self._anchors.pop(gone, None)
+            self._next_expiry = tick + self._expire_every
         if answer is None:
             self.stats.refused += 1
             return _error(
@@ -102,15 +153,75 @@ class LaasService:
         self.stats.answered += 1
         return answer.model_dump()
 
+    def _check_clock(self, pseudonym: str, t: float, now: float) -> dict[str, Any] | None:
+        """Refuse a timestamp too far behind the wall clock, or too far ahead of it."""
+        problem = None
+        if t < now - self.max_past:
+            problem = f"{now - t:.0f} s behind the service's clock (limit {self.max_past:g} s)"
+        else:
+            anchor = self._anchors.get(pseudonym)
+            if anchor is None and t > now + self.max_future:
+                problem = (
+                    f"{t - now:.0f} s ahead of the service's clock "
+                    f"(limit {self.max_future:g} s for a session's first fix)"
+                )
+            elif anchor is not None:
+                t0, wall0 = anchor
+                limit = t0 + self.max_speedup * max(0.0, now - wall0) + self.max_future
+                if t > limit:
+                    problem = (
+                        f"runs ahead of the service's clock more than {self.max_speedup:g} "
+                        "times faster than real time since this session's first fix"
+                    )
+        if problem is None:
+            return None
+        self.stats.clock += 1
+        return _error(
+            "clock",
+            f"measurement refused: timestamp: {problem}; synchronise the clock",
+            [{"field": "timestamp", "problem": problem}],
+        )
+
+    def _check_area(self, m: GpsMeasurement) -> dict[str, Any] | None:
+        """Refuse a fix outside the map's area (plus ``max_distance``)."""
+        x, y = self._map.projection.to_utm(m.longitude, m.latitude)
+        x0, y0, x1, y1 = self._map.bounds
+        d = self.max_distance
+        if (
+            math.isfinite(x)
+            and math.isfinite(y)
+            and x0 - d <= x <= x1 + d
+            and y0 - d <= y <= y1 + d
+        ):
+            return None
+        self.stats.outside += 1
+        problem = f"more than {d / 1000:g} km outside the service area of map {self._map.source}"
+        return _error(
+            "outside",
+            f"measurement refused: latitude/longitude: {problem}",
+            [{"field": "latitude", "problem": problem}, {"field": "longitude", "problem": problem}],
+        )
+
 
 def start_worker(
     cluster: BrokerSettings | str,
     hdmap: HdMap,
     config: EngineConfig | None = None,
+    *,
+    max_future: float = 30.0,
+    max_past: float = 600.0,
+    max_speedup: float = 100.0,
     **provider_settings: Any,
 ) -> tuple[Provider, LaasService]:
-    """Connect to a service-cluster broker, announce `laas` and serve until stopped."""
-    service = LaasService(hdmap, config)
+    """Connect to a service-cluster broker, announce `laas` and serve until stopped.
+
+    ``max_future``, ``max_past`` and ``max_speedup`` are the clock checks of
+    `LaasService`; ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``,
+    ``max_age``, ``data_qos``, ...).
+    """
+    service = LaasService(
+        hdmap, config, max_future=max_future, max_past=max_past, max_speedup=max_speedup
+    )
     provider = Provider.create(cluster, service_spec(), service.handle, **provider_settings)
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)

@@ -133,6 +133,11 @@ class CoreStats:
     rejected_rate: int = 0
     rejected_size: int = 0
     rejected_clock: int = 0
+    granted: int = 0
+    answered_nosession: int = 0
+    """Input or requests for a session the core does not hold (answered ``nosession``)."""
+    answered_refused: int = 0
+    """Requests or input for a service the cluster does not offer (answered ``refused``)."""
     notices_suppressed: int = 0
     """Refusals not answered because the client's notice bucket was empty."""
     rotations: int = 0
@@ -483,6 +488,7 @@ class Core(Worker[Event]):
     def _session_request(self, client: str, req: SessionRequest) -> None:
         svc = self._services.get(req.service)
         if svc is None:
+            self.stats.answered_refused += 1
             error = f"no service {req.service!r} in this cluster; list the services first"
             self._notify(
                 client, SessionNotice(kind="refused", service=req.service, c=req.c, error=error)
@@ -506,6 +512,7 @@ class Core(Worker[Event]):
             max_age=cfg.max_age,
             data_qos=cfg.data_qos,
         )
+        self.stats.granted += 1
         self._notify(client, SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant))
 
     def _stale(self, env: Envelope) -> bool:
@@ -527,10 +534,12 @@ class Core(Worker[Event]):
             return
         session = self._sessions.get((client, service))
         if session is None or env.k is None:
+            self.stats.answered_nosession += 1
             self._notify(client, SessionNotice(kind="nosession", service=service, c=env.c))
             return
         svc = self._services.get(service)
         if svc is None:
+            self.stats.answered_refused += 1
             error = f"service {service!r} is gone"
             self._notify(
                 client, SessionNotice(kind="refused", service=service, c=env.c, error=error)

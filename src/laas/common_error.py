@@ -46,7 +46,7 @@ class CommonError:
         self, centre: np.ndarray, prior_sigma: float, drift: float, resolution: float
     ) -> None:
         self.centre = centre.copy()
-        half = 2.5 * prior_sigma
+        half = 3.5 * prior_sigma  # wide enough that no ridge of likely values is clipped
         self._res = resolution
         self._axis = np.arange(-half, half + resolution / 2, resolution)
         n = self._axis.size

@@ -50,10 +50,15 @@ class EngineConfig(BaseModel):
 
     # Lane model.
     sigma_lane: Positive = Field(
-        default=0.35, description="spread of a user's lateral position about its lane centre, m"
+        default=0.25, description="spread of a user's lateral position about its lane centre, m"
     )
     lane_change_rate: NonNegative = Field(
-        default=0.01, description="unprompted lane changes per second, to each side"
+        default=0.1,
+        description=(
+            "lane changes per second, to each side, that heading does not announce; it is "
+            "also how fast an old lane decision fades, since successive filtered fixes "
+            "share their errors and are weaker evidence than they look"
+        ),
     )
     max_lane_change: Probability = Field(
         default=0.45, description="largest probability of leaving a lane to one side in one step"
@@ -79,5 +84,5 @@ class EngineConfig(BaseModel):
         default=32, description="default mode: most users in one joint lane search"
     )
     bias_resolution: Positive = Field(
-        default=0.25, description="cell size of the common error's grid posterior, m"
+        default=0.3, description="cell size of the common error's grid posterior, m"
     )

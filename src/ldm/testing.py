@@ -95,7 +95,7 @@ def mosquitto_acl(core_user: str, providers: Mapping[str, str]) -> str:
         "# participants (any client): their own topics and the service list",
         "pattern write ldm/p/%c/up/#",
         "pattern read ldm/p/%c/down/#",
-        "topic read ldm/services",
+        "pattern read ldm/services",
         f"user {core_user}",
         "topic readwrite ldm/#",
     ]

@@ -2,7 +2,7 @@
 
 User-cluster topics carry the participant's MQTT client id at level 3, so a Mosquitto
 ACL can confine a participant with ``pattern write ldm/p/%c/up/#`` and
-``pattern read ldm/p/%c/down/#`` (plus ``topic read ldm/services``).
+``pattern read ldm/p/%c/down/#`` (plus ``pattern read ldm/services``).
 Topics that leave the user cluster carry only pseudonyms.
 
     ldm/services                                   retained service list of this cluster

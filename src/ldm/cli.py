@@ -53,9 +53,19 @@ def _parser() -> argparse.ArgumentParser:
         ("--idle-timeout", "idle_timeout"),
         ("--service-ttl", "service_ttl"),
         ("--max-age", "max_age"),
+        ("--rate", "rate"),
+        ("--burst", "burst"),
+        ("--max-clock-skew", "max_clock_skew"),
     ]:
         default = CoreConfig.model_fields[field].default
-        core.add_argument(option, type=float, default=default, help=f"seconds (default {default})")
+        unit = "messages/s" if field == "rate" else "messages" if field == "burst" else "seconds"
+        core.add_argument(option, type=float, default=default, help=f"{unit} (default {default})")
+    core.add_argument(
+        "--max-payload",
+        type=int,
+        default=CoreConfig.model_fields["max_payload"].default,
+        help="largest participant message, bytes",
+    )
     core.add_argument("--data-qos", type=int, default=0, choices=(0, 1, 2), help="QoS of data")
     return parser
 
@@ -88,6 +98,10 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
         service_ttl=args.service_ttl,
         max_age=args.max_age,
         data_qos=args.data_qos,
+        rate=args.rate,
+        burst=args.burst,
+        max_clock_skew=args.max_clock_skew,
+        max_payload=args.max_payload,
     )
 
 

@@ -1,0 +1,67 @@
+"""The LaaS worker's decoder: error replies that name the field, clock checks, isolation."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from laas.hdmap import HdMap
+from laas.service import LaasService
+from ldm import Request
+
+NOW = 1_700_000_000.0
+FIX = {"latitude": 53.55876, "longitude": 9.97610, "altitude": 10.0, "heading": 30.8, "speed": 5.4}
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = NOW
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture(scope="module")
+def hdmap() -> HdMap:
+    return HdMap.load("maps/messe-hamburg.geojson")
+
+
+def send(service: LaasService, who: str, t: float, **changes: Any) -> dict[str, Any]:
+    payload = {**FIX, "timestamp": int(t * 1000), **changes}
+    return dict(service.handle(Request(who, "c", payload, t, False)))
+
+
+def fields(reply: dict[str, Any]) -> set[str]:
+    return {f["field"] for f in reply["error"]["fields"]}
+
+
+def test_bad_fixes_get_an_error_naming_the_field(hdmap: HdMap) -> None:
+    clock = Clock()
+    service = LaasService(hdmap, wall_clock=clock)
+    assert "segment" in send(service, "a", NOW)
+    assert fields(send(service, "b", NOW, latitude=float("nan"))) == {"latitude"}
+    assert fields(send(service, "b", NOW, longitude=181.0)) == {"longitude"}
+    assert fields(send(service, "b", NOW, speed="fast")) == {"speed"}
+    assert send(service, "b", NOW, latitude=48.1, longitude=11.6)["error"]["kind"] == "outside"
+    assert send(service, "a", NOW)["error"]["kind"] == "stale"  # a duplicate
+    assert service.stats.invalid == 3 and service.stats.outside == 1 and service.stats.refused == 1
+
+
+def test_clock_checks_are_relative_to_the_sessions_first_fix(hdmap: HdMap) -> None:
+    clock = Clock()
+    service = LaasService(hdmap, wall_clock=clock, max_future=30, max_past=600, max_speedup=100)
+    ahead = send(service, "x", NOW + 31)
+    assert ahead["error"]["kind"] == "clock" and fields(ahead) == {"timestamp"}
+    assert "ahead" in ahead["error"]["message"]
+    assert "behind" in send(service, "x", NOW - 601)["error"]["message"]
+    # A simulator at 10x: its timestamps run ahead of the wall clock, within one session.
+    for k in range(1, 60):
+        clock.now = NOW + k * 0.1
+        assert "segment" in send(service, "sim", NOW + k * 1.0), k
+    # A session that runs more than 100x faster than real time is refused, others not.
+    assert "segment" in send(service, "fast", clock.now)
+    clock.now += 0.1
+    assert send(service, "fast", clock.now + 45)["error"]["kind"] == "clock"
+    assert "segment" in send(service, "sim", NOW + 60.0)
+    assert service.stats.clock == 3

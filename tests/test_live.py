@@ -46,3 +46,18 @@ def test_live_accuracy_matches_offline_replay(
     online = score(hamburg, trace, live.answers)
     assert abs(online.accuracy - offline.accuracy) <= 0.02
     assert online.accuracy > 0.9
+
+
+def test_rotation_costs_little_accuracy(hamburg: HdMap) -> None:
+    """Pseudonyms rotating every 1.5 s (30 s of the scenario at 20x): a rotated user is
+    a new track to the worker, but the common error carries the group over."""
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg, scenario, scenario.errors, seed=4)
+    engine = Engine(hamburg, CONFIG)
+    offline = score(hamburg, trace, [engine.process(f.user, f.measurement) for f in trace.fixes])
+    with LocalDeployment(hamburg, CONFIG, brokers="embedded", rotation_period=1.5) as deployment:
+        live = run_participants(deployment.user_url, trace, speedup=20.0)
+        assert deployment.cores["user"].stats is not None
+    assert live.answered == len(trace.fixes), live.errors[:3]
+    online = score(hamburg, trace, live.answers)
+    assert online.accuracy >= offline.accuracy - 0.1

@@ -303,16 +303,22 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
     participants: dict[str, Participant] = {}
     pongs: dict[int, float] = {}
 
+    pong_topic = _PONG.format(shard=shard.index)
+
     def on_pong(event: Event) -> None:  # paho's thread: record the time, nothing more
-        if isinstance(event, Message):
-            pongs[int(event.payload)] = time.perf_counter()
+        # Only this shard's pongs count; anything else the broker delivers (a retained
+        # message, another client's traffic) is ignored, never parsed.
+        if isinstance(event, Message) and event.topic == pong_topic:
+            payload = event.payload.decode("ascii", "replace")
+            if payload.isdigit():
+                pongs[int(payload)] = time.perf_counter()
 
     bare = Transport(
         BrokerSettings.of(shard.url),
         client_id=f"bench-bare-{shard.tag}-{shard.index}",
         sink=on_pong,
     )
-    bare.subscribe(_PONG.format(shard=shard.index), 0)
+    bare.subscribe(pong_topic, 0)
     try:
         bare.start(10.0)
         for u in users:
@@ -420,6 +426,12 @@ def _stamp(done_at: dict[int, float], i: int) -> Callable[[Future[dict[str, Any]
     return record
 
 
+def _is_ping(topic: str) -> bool:
+    """True for a bare ping topic, bench/bare/{shard}/ping."""
+    parts = topic.split("/")
+    return len(parts) == 4 and parts[:2] == ["bench", "bare"] and parts[3] == "ping"
+
+
 def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
     """Echo every ping on the user broker back as a pong, via a worker thread."""
     inbox: queue.SimpleQueue[Event] = queue.SimpleQueue()
@@ -429,7 +441,8 @@ def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
     def work() -> None:
         while True:
             event = inbox.get()
-            if isinstance(event, Message):
+            # Echo only pings (bench/bare/{shard}/ping) back to their shard's pong topic.
+            if isinstance(event, Message) and _is_ping(event.topic):
                 transport.publish(event.topic[: -len("ping")] + "pong", event.payload, 0)
             elif event is None:
                 return

@@ -1,5 +1,6 @@
 # One image for every Python service of the deployment: `ldm core`, `laas worker`,
-# `laas simulate` (see docker-compose.yml). No entrypoint: the command is the program.
+# `laas simulate`, deploy/simulate.py (see docker-compose.yml). No entrypoint: the
+# command is the program.
 #
 #   docker build -t laas .
 #   docker run --rm laas laas worker --help
@@ -19,7 +20,8 @@ COPY src ./src
 RUN pip install . && rm -rf build src/*.egg-info
 
 COPY maps ./maps
-COPY deploy/healthcheck.py ./deploy/healthcheck.py
+# The containers' health checks and the compose simulator (one account per road user).
+COPY deploy/healthcheck.py deploy/simulate.py ./deploy/
 
 # laas.scenario finds maps/ two folders above the package, the source-tree layout; in
 # site-packages that is .../lib/python3.11/maps, so point it at /app/maps.

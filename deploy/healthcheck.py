@@ -1,14 +1,19 @@
 """Container health checks for the LDM cores and the LaaS worker (exit 0 healthy, 1 not).
 
-    python deploy/healthcheck.py core mqtt://broker-backbone:1883 user
-    python deploy/healthcheck.py service mqtt://broker-service:1883 laas
+    python deploy/healthcheck.py core mqtt://broker-backbone:1883 user \
+        --username ldm-core-user --password-env LDM_BACKBONE_PASSWORD
+    python deploy/healthcheck.py service mqtt://broker-service:1883 laas \
+        --username laas-worker --password-env LAAS_PASSWORD
 
 `core NAME`: the core's retained status on the backbone (`ldm/bb/core/NAME`) says
 online; its last will turns it offline when the process dies or loses the broker.
 `service NAME`: the service's retained announcement on its cluster broker
 (`ldm/svc/NAME/announce`) is not empty; the provider's last will empties it.
 Both read one retained message through the LDM's own transport, so the check sees
-what the other cores and participants see.
+what the other cores and participants see. On a broker with accounts the check logs in
+with the checked container's own account (its password from the environment variable
+--password-env names) under a random client id; those brokers do not set
+use_username_as_clientid, so the check never displaces the container's own connection.
 """
 
 from __future__ import annotations
@@ -18,18 +23,20 @@ import queue
 import secrets
 import sys
 import time
+from pathlib import Path
 
 from ldm import BrokerSettings, LdmError
+from ldm.config import build
 from ldm.messages import CoreStatus
 from ldm.topics import announce, bb_core
 from ldm.transport import Event, Message, Transport
 
 
-def retained(url: str, topic: str, timeout: float) -> bytes | None:
+def retained(broker: BrokerSettings | str, topic: str, timeout: float) -> bytes | None:
     """The retained payload of `topic`, or None if none arrives within `timeout` s."""
     events: queue.SimpleQueue[Event] = queue.SimpleQueue()
     transport = Transport(
-        BrokerSettings.of(url), client_id=f"health-{secrets.token_hex(4)}", sink=events.put
+        BrokerSettings.of(broker), client_id=f"health-{secrets.token_hex(4)}", sink=events.put
     )
     transport.subscribe(topic, 1)
     deadline = time.monotonic() + timeout
@@ -53,10 +60,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("url", help="broker that carries the retained message, mqtt://HOST:PORT")
     parser.add_argument("name", help="core name or service name")
     parser.add_argument("--timeout", type=float, default=3.0, help="seconds")
+    parser.add_argument("--username", help="account on the broker (default: anonymous)")
+    parser.add_argument("--password-env", help="environment variable holding its password")
+    parser.add_argument("--ca-file", type=Path, help="CA certificates for an mqtts:// broker")
     a = parser.parse_args(argv)
     topic = bb_core(a.name) if a.kind == "core" else announce(a.name)
     try:
-        payload = retained(a.url, topic, a.timeout)
+        broker = build(
+            BrokerSettings,
+            url=a.url,
+            username=a.username,
+            password_env=a.password_env if a.username else None,
+            ca_file=a.ca_file,
+        )
+        payload = retained(broker, topic, a.timeout)
     except LdmError as exc:
         print(f"unhealthy: {exc}")
         return 1

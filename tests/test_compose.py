@@ -2,12 +2,16 @@
 
 There is no container engine on the test machines, so this test reads the compose file
 and starts each service with the same command, arguments and environment as compose
-would: the brokers as Mosquitto processes with the mounted config (only the listener
-port changes: a free port per broker), the Python services through the same console
-scripts. Service host names (`broker-user`, ...) become 127.0.0.1:<that broker's
-port>, and image paths under /app/ become the repository's. Dependencies start in
-compose's order and wait for the compose health checks, which run here too. Then the
-simulator (profile `sim`) drives the Hamburg road users through the deployment.
+would: the brokers as Mosquitto processes with the mounted config, ACL and password file
+(only the listener port changes, a free port per broker, and the mounted paths become
+the host files), the Python services through the same console scripts. The accounts are
+made as the deployment makes them: deploy/security/compose-accounts.sh writes an env
+file with random passwords and the password file, and the env file's values are what
+compose would substitute. Service host names (`broker-user`, ...) become
+127.0.0.1:<that broker's port>, and image paths under /app/ become the repository's.
+Dependencies start in compose's order and wait for the compose health checks, which run
+here too. Then the simulator (profile `sim`) drives the Hamburg road users through the
+deployment.
 """
 
 from __future__ import annotations
@@ -32,15 +36,20 @@ from ldm.testing import find_mosquitto, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
+ACCOUNTS = ROOT / "deploy" / "security" / "compose-accounts.sh"
 MOSQUITTO_IMAGE = "eclipse-mosquitto:2"
 CONFIG_IN_IMAGE = "/mosquitto/config/mosquitto.conf"
-_VARIABLE = re.compile(r"\$\$|\$\{(\w+)(?:(:?-)([^}]*))?\}|\$(\w+)")
+_VARIABLE = re.compile(r"\$\$|\$\{(\w+)(?:(:?[-?])([^}]*))?\}|\$(\w+)")
 
 Service = dict[str, Any]
 
 
+class Unset(Exception):
+    """A required variable (${X:?message}, ${X?message}) is unset: compose refuses."""
+
+
 def interpolate(value: Any, env: Mapping[str, str]) -> Any:
-    """Compose's variable substitution: ${X}, ${X:-default}, ${X-default}, $X and $$."""
+    """Compose's substitution: ${X}, ${X:-default}, ${X-default}, ${X:?err}, ${X?err}, $X, $$."""
     if isinstance(value, str):
 
         def sub(m: re.Match[str]) -> str:
@@ -51,6 +60,11 @@ def interpolate(value: Any, env: Mapping[str, str]) -> Any:
                 return env.get(name) or m.group(3)
             if m.group(2) == "-":
                 return env.get(name, m.group(3))
+            if m.group(2) in (":?", "?"):
+                found = env.get(name)
+                if found is None or (m.group(2) == ":?" and not found):
+                    raise Unset(f"{name}: {m.group(3)}")
+                return found
             return env.get(name, "")
 
         return _VARIABLE.sub(sub, value)
@@ -72,13 +86,43 @@ def is_broker(service: Service) -> bool:
     return bool(service.get("image") == MOSQUITTO_IMAGE)
 
 
-def mounted_config(service: Service) -> Path:
-    """The host file a broker service mounts as its mosquitto.conf."""
+def mounts(service: Service) -> dict[str, Path]:
+    """Path in the container -> the host file mounted there."""
+    found = {}
     for volume in service.get("volumes", []):
         source, target, *_ = str(volume).split(":")
-        if target == CONFIG_IN_IMAGE:
-            return (ROOT / source).resolve()
-    raise AssertionError(f"broker mounts no {CONFIG_IN_IMAGE}: {service.get('volumes')}")
+        found[target] = (ROOT / source).resolve()
+    return found
+
+
+def mounted_config(service: Service) -> Path:
+    """The host file a broker service mounts as its mosquitto.conf."""
+    config = mounts(service).get(CONFIG_IN_IMAGE)
+    assert config, f"broker mounts no {CONFIG_IN_IMAGE}: {service.get('volumes')}"
+    return config
+
+
+def settings(config: Path) -> list[tuple[str, str]]:
+    """The (option, value) lines of a mosquitto.conf, in order, comments dropped."""
+    lines = [line.split("#")[0].strip() for line in config.read_text().splitlines()]
+    return [(k, v.strip()) for k, _, v in (line.partition(" ") for line in lines if line)]
+
+
+def make_accounts(directory: Path) -> dict[str, str]:
+    """Run compose-accounts.sh as documented, into `directory`; the env file's values."""
+    env_file, passwd = directory / ".env", directory / "passwd"
+    subprocess.run(
+        ["bash", str(ACCOUNTS), str(env_file)],
+        check=True,
+        capture_output=True,
+        env={"PATH": "/usr/bin:/bin:/usr/sbin", "PASSWD_FILE": str(passwd), "MODE": "0644"},
+    )
+    values = {}
+    for line in env_file.read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, _, value = line.partition("=")
+            values[name] = value
+    return values
 
 
 def environment(service: Service) -> dict[str, str]:
@@ -109,7 +153,7 @@ def start_order(services: Mapping[str, Service]) -> list[str]:
 
 
 def test_every_service_restarts_and_brokers_are_checked() -> None:
-    services = load_compose()
+    services = load_compose(SECRETS)
     brokers = [n for n, s in services.items() if is_broker(s)]
     assert sorted(brokers) == ["broker-backbone", "broker-service", "broker-user"]
     for name, service in services.items():
@@ -130,20 +174,137 @@ def test_every_service_restarts_and_brokers_are_checked() -> None:
     assert [n for n, s in services.items() if s.get("ports")] == ["broker-user"]
 
 
-def test_every_mosquitto_config_in_use_is_tuned() -> None:
-    services = load_compose()
-    configs = {mounted_config(s) for s in services.values() if is_broker(s)}
-    assert configs, "no broker mounts a config"
-    for config in configs:
-        lines = {line.split("#")[0].strip() for line in config.read_text().splitlines()}
-        assert "set_tcp_nodelay true" in lines, config
-        assert "listener 1883" in lines, config
-        assert "persistence false" in lines or "persistence true" in lines, config
-        assert "allow_anonymous true" in lines, config  # until the access-control issue
+SECRETS = {
+    "LDM_CORE_USER_PASSWORD": "u",
+    "LDM_CORE_SERVICE_PASSWORD": "s",
+    "LAAS_WORKER_PASSWORD": "w",
+    "LAAS_HEALTH_PASSWORD": "h",
+    "LAAS_SIM_PASSWORD": "p",
+}
+
+
+def test_every_mosquitto_config_in_use_is_tuned_and_locked() -> None:
+    services = load_compose(SECRETS)
+    brokers = {n: s for n, s in services.items() if is_broker(s)}
+    acls = {
+        "broker-user": "deploy/security/acl-user-cluster",
+        "broker-backbone": "deploy/security/acl-backbone",
+        "broker-service": "deploy/security/acl-service-cluster",
+    }
+    assert sorted(brokers) == sorted(acls)
+    for name, service in brokers.items():
+        config = mounted_config(service)
+        options = settings(config)
+        found = dict(options)
+        assert found.get("set_tcp_nodelay") == "true", config
+        assert ("listener", "1883") in options, config
+        assert found.get("persistence") in ("false", "true"), config
+        assert found.get("message_size_limit") == "65536", config
+        # anonymous access is off; every broker has its accounts and ACL, mounted
+        assert [v for k, v in options if k == "allow_anonymous"] == ["false"], config
+        files = mounts(service)
+        for option, in_image, host in (
+            ("password_file", "/mosquitto/config/passwd", "deploy/security/passwd"),
+            ("acl_file", "/mosquitto/config/acl", acls[name]),
+        ):
+            assert found.get(option) == in_image, (config, option)
+            assert files.get(in_image) == ROOT / host, (name, in_image)
+            assert all(str(v).endswith(":ro") for v in service["volumes"]), name
+    assert mounted_config(brokers["broker-user"]) == ROOT / "mosquitto.conf"
+    assert len({mounted_config(s) for s in brokers.values()}) == 3, "one config per broker"
+
+
+def listener_blocks(lines: list[tuple[str, str]]) -> list[list[tuple[str, str]]]:
+    """The options of each listener block (from a `listener` line to the next)."""
+    blocks: list[list[tuple[str, str]]] = []
+    for option in lines:
+        if option[0] == "listener":
+            blocks.append([])
+        elif blocks:
+            blocks[-1].append(option)
+    return blocks
+
+
+def test_every_user_cluster_listener_uses_the_user_name_as_client_id() -> None:
+    config = mounted_config(load_compose(SECRETS)["broker-user"])
+    blocks = listener_blocks(settings(config))
+    assert blocks, "no listener"
+    for block in blocks:
+        assert ("use_username_as_clientid", "true") in block, config
+    # ... and so does the commented TLS listener, once uncommented
+    uncommented = [
+        line.lstrip("# ").strip()
+        for line in config.read_text().splitlines()
+        if line.startswith("#   ")
+    ]
+    tls = [(k, v.strip()) for k, _, v in (line.partition(" ") for line in uncommented if line)]
+    tls_blocks = listener_blocks(tls)
+    assert [b for b in tls_blocks if ("certfile", "/mosquitto/config/certs/server.crt") in b]
+    for block in tls_blocks:
+        assert ("use_username_as_clientid", "true") in block, block
+
+
+def acl_rules(path: Path) -> list[tuple[str | None, str]]:
+    """(user the rule belongs to, None for every client's patterns/anonymous; the rule)."""
+    user: str | None = None
+    rules = []
+    for line in path.read_text().splitlines():
+        line = "" if line.lstrip().startswith("#") else line.strip()  # topics hold "#"
+        if line.startswith("user "):
+            user = line.split(None, 1)[1]
+        elif line:
+            rules.append((user, line))
+    return rules
+
+
+def test_the_acls_give_every_compose_account_what_it_needs() -> None:
+    security = ROOT / "deploy" / "security"
+    for acl in security.glob("acl-*"):
+        rules = acl_rules(acl)
+        # before the first `user` line, a `topic` rule binds only anonymous clients
+        assert not [r for u, r in rules if u is None and r.startswith("topic")], acl
+        assert ("laas-health", "topic read $SYS/broker/version") in rules, acl
+    user = acl_rules(security / "acl-user-cluster")
+    assert (None, "pattern read ldm/services") in user
+    assert (None, "pattern write ldm/p/%u/up/#") in user
+    assert not (ROOT / "deploy" / "mosquitto" / "acl.example").exists()
+    # the accounts the compose services log in with exist in their brokers' ACLs
+    services = load_compose(SECRETS)
+    for name in ("user", "service"):
+        command = services[f"core-{name}"]["command"]
+        account = f"ldm-core-{name}"
+        assert command[command.index("--username") + 1] == account
+        assert command[command.index("--backbone-username") + 1] == account
+        assert account in {u for u, _ in acl_rules(security / f"acl-{name}-cluster")}
+        assert account in {u for u, _ in acl_rules(security / "acl-backbone")}
+        env = environment(services[f"core-{name}"])
+        assert (
+            env["LDM_PASSWORD"]
+            == env["LDM_BACKBONE_PASSWORD"]
+            == SECRETS[f"LDM_CORE_{name.upper()}_PASSWORD"]
+        )
+        assert command[command.index("--rate") + 1] == "200"
+        assert command[command.index("--burst") + 1] == "400"
+    assert environment(services["worker"])["LAAS_USERNAME"] == "laas-worker"
+    assert environment(services["simulator"])["LAAS_PASSWORD"] == "p"
+    # no password on a command line, except the broker health check's (laas-health)
+    for name, service in services.items():
+        words = (
+            [*service.get("command", []), *service["healthcheck"]["test"]]
+            if ("healthcheck" in service)
+            else list(service.get("command", []))
+        )
+        leaked = {w for w in words if w in SECRETS.values()}
+        assert leaked <= ({"h"} if is_broker(service) else set()), name
+
+
+def test_compose_refuses_to_start_without_passwords() -> None:
+    with pytest.raises(Unset, match=re.escape("compose-accounts.sh")):
+        load_compose({})
 
 
 def test_cores_and_worker_match_the_topology() -> None:
-    services = load_compose()
+    services = load_compose(SECRETS)
     for name in ("user", "service"):
         command = services[f"core-{name}"]["command"]
         assert command[:4] == ["ldm", "core", "--name", name]
@@ -154,10 +315,10 @@ def test_cores_and_worker_match_the_topology() -> None:
     assert worker["command"][:2] == ["laas", "worker"]
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"
     sim = services["simulator"]["command"]
-    assert sim[:2] == ["laas", "simulate"]
+    assert sim[:2] == ["python", "/app/deploy/simulate.py"]
     assert sim[sim.index("--cluster") + 1] == "mqtt://broker-user:1883"
     # configuration by environment
-    changed = load_compose({"LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
+    changed = load_compose({**SECRETS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
     command = changed["core-user"]["command"]
     assert command[command.index("--rotation-period") + 1] == "30"
     assert environment(changed["worker"])["LAAS_LOG_LEVEL"] == "debug"
@@ -176,15 +337,40 @@ def test_dockerfile_builds_a_non_root_image_without_entrypoint() -> None:
     assert users and users[-1] not in ("root", "0")
     # what the compose file runs from the image is copied into it
     copied = " ".join(line for line in lines if line.startswith("COPY"))
-    for path in ("pyproject.toml", "src", "maps", "deploy/healthcheck.py"):
+    for path in ("pyproject.toml", "src", "maps", "deploy/healthcheck.py", "deploy/simulate.py"):
         assert path in copied, path
     ignored = (ROOT / ".dockerignore").read_text().split()
     assert ".venv" in ignored and ".git" in ignored
+    assert ".env" in ignored and "deploy/security/passwd" in ignored
 
 
 def test_interpolation_follows_compose() -> None:
     env = {"A": "1", "E": ""}
     assert interpolate("${A:-x} ${B:-x} ${E:-x} ${E-x} ${B-y} $A $$SYS", env) == "1 x x  y 1 $SYS"
+    assert interpolate("${A:?no} ${E?no}", env) == "1 "
+    for unset in ("${E:?no}", "${B?no}"):
+        with pytest.raises(Unset):
+            interpolate(unset, env)
+
+
+def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> None:
+    first = make_accounts(tmp_path)
+    for name in SECRETS:
+        assert len(first[name]) == 24 and first[name].isalnum(), name
+    hashes = (tmp_path / "passwd").read_text()
+    users = [line.split(":")[0] for line in hashes.splitlines()]
+    simulated = subprocess.run(
+        [sys.executable, str(ROOT / "deploy" / "simulate.py"), "--accounts"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.split()
+    assert simulated == ["sim-car", "sim-cyclist-1", "sim-cyclist-2"]
+    expected = ["ldm-core-user", "ldm-core-service", "laas-worker", "laas-health", *simulated]
+    assert sorted(users) == sorted(expected)
+    assert not any(first[name] in hashes for name in SECRETS)  # hashes only
+    assert make_accounts(tmp_path) == first  # again: nothing changes
+    assert (tmp_path / ".env").stat().st_mode & 0o077 == 0
 
 
 # --- the services, run ---------------------------------------------------------------
@@ -193,9 +379,13 @@ def test_interpolation_follows_compose() -> None:
 class LocalCompose:
     """The compose services as processes on this machine."""
 
-    def __init__(self, services: Mapping[str, Service], workdir: Path) -> None:
+    def __init__(
+        self, services: Mapping[str, Service], workdir: Path, secrets: Mapping[str, str]
+    ) -> None:
         self.services = services
         self.workdir = workdir
+        self.passwd = workdir / "passwd"  # compose mounts ./deploy/security/passwd
+        self.secrets = secrets
         self.ports = {name: free_port() for name, s in services.items() if is_broker(s)}
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
@@ -220,7 +410,7 @@ class LocalCompose:
         return head + args
 
     def env(self, service: Service) -> dict[str, str]:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("LAAS_")}
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("LAAS_", "LDM_"))}
         env.update({k: self.local(v) for k, v in environment(service).items()})
         env["PYTHONUNBUFFERED"] = "1"
         return env
@@ -232,6 +422,10 @@ class LocalCompose:
             port = self.ports[name]
             local, n = re.subn(r"(?m)^listener 1883\s*$", f"listener {port} 127.0.0.1", config)
             assert n == 1, f"{name}: expected one `listener 1883` line"
+            for in_image, host in mounts(service).items():
+                if host == ROOT / "deploy" / "security" / "passwd":
+                    host = self.passwd  # generated for this run, as the deployment does
+                local = re.sub(rf"(?m)^(\w+) {re.escape(in_image)}\s*$", rf"\1 {host}", local)
             path = self.workdir / f"{name}.conf"
             path.write_text(local)
             path.chmod(0o644)
@@ -298,8 +492,11 @@ def local_compose() -> Iterator[LocalCompose]:
     need_mosquitto()
     workdir = Path(tempfile.mkdtemp(prefix="laas-compose-"))
     workdir.chmod(0o755)  # mosquitto started as root reads its config as "mosquitto"
-    # what `LAAS_SIM_SPEEDUP=25 docker compose --profile sim up` would substitute
-    deployment = LocalCompose(load_compose({"LAAS_SIM_SPEEDUP": "25"}), workdir)
+    # deploy/security/compose-accounts.sh, then what `LAAS_SIM_SPEEDUP=25 docker compose
+    # --profile sim up` would substitute from the .env it wrote
+    secrets = make_accounts(workdir)
+    env = {**secrets, "LAAS_SIM_SPEEDUP": "25"}
+    deployment = LocalCompose(load_compose(env), workdir, secrets)
     try:
         yield deployment
     finally:
@@ -316,6 +513,16 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     for name in running:
         local_compose.start(name)
         local_compose.wait_healthy(name)
+    # the brokers are locked: no anonymous client, no wrong password, no $SYS for others
+    for name in running[:3]:
+        port = str(local_compose.ports[name])
+        sub = [*local_compose.argv(["mosquitto_sub"]), "-h", "127.0.0.1", "-p", port]
+        for who in ([], ["-u", "laas-health", "-P", "wrong"]):
+            check = [*sub, *who, "-t", "$SYS/broker/version", "-C", "1", "-W", "2"]
+            assert subprocess.run(check, capture_output=True).returncode != 0, (name, who)
+        car = ["-u", "sim-car", "-P", local_compose.secrets["LAAS_SIM_PASSWORD"]]
+        check = [*sub, *car, "-t", "$SYS/broker/version", "-C", "1", "-W", "2"]
+        assert subprocess.run(check, capture_output=True).returncode != 0, name
 
     sim = services["simulator"]
     for dep in sim["depends_on"]:

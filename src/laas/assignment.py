@@ -113,7 +113,7 @@ def best_assignment(
     log_prior: np.ndarray,
     delta_mean: float = 0.0,
     delta_sigma: float = 10.0,
-    mixture_size: int = 64,
+    mixture_size: int = 16,
 ) -> Assignment:
     """The exact minimiser of C(h, delta) by the breakpoint sweep described above.
 
@@ -174,8 +174,8 @@ def best_assignment(
     for j, k in enumerate(keep):
         if k:
             hs[j, user[:k]] = to[:k]
-    hs, first = np.unique(hs, axis=0, return_index=True)
-    deltas, costs = deltas[keep][first], costs[keep][first]
+    first = list({row.tobytes(): j for j, row in reversed(list(enumerate(hs)))}.values())
+    hs, deltas, costs = hs[first], deltas[keep][first], costs[keep][first]
     best = int(np.argmin(costs))
     return Assignment(
         lanes=hs[best].copy(),

@@ -183,16 +183,16 @@ class Engine:
             self._join(user, state, segment)
         group = self._groups[segment.id]
         state.place = self._place(state, segment, b)
-        geometry = {user: state.place.at(t, b)}
+        places = {user: state.place}
         for v in self._members(group, user, t)[1:]:
             place = self._users[v].place
             if place is not None:
-                geometry[v] = place.at(t, b)
-        if c.mode == "paper":
+                places[v] = place
+        if area is None:  # paper mode
+            geometry = {v: place.at(t, b) for v, place in places.items()}
             lane, probability, point = self._paper_step(user, segment, group, geometry)
         else:
-            assert area is not None  # default mode always has an area
-            lane, probability, point = self._default_step(user, segment, geometry, area)
+            lane, probability, point = self._default_step(user, segment, places, t, area)
         self.stats.answered += 1
         return self._answer(measurement, point, segment, lane, probability, state, area)
 
@@ -306,12 +306,17 @@ class Engine:
         return lane, probability, placed[user][lane]
 
     def _default_step(
-        self, user: str, segment: Segment, geometry: dict[str, _Geometry], area: CommonError
+        self,
+        user: str,
+        segment: Segment,
+        places: dict[str, _Place],
+        t: float,
+        area: CommonError,
     ) -> tuple[int, float, np.ndarray]:
         """Joint assignment with a shared residual offset, then the common-error update."""
         c = self.config
         state = self._users[user]
-        g_u = geometry[user]
+        g_u = places[user].at(t, area.b)
         lanes = len(segment.lanes)
         transition, direction = self._prediction(state, segment, g_u)
         prior = state.belief if state.belief is not None else np.full(lanes, 1.0 / lanes)
@@ -321,28 +326,30 @@ class Engine:
         # road; then it takes u's nearest neighbours along the segment, at most max_group.
         tau = max(area.sigma_along(g_u.normal), 1e-3)
         gaps = np.diff(g_u.offsets)
-        users = list(geometry)
+        users = list(places)
         if lanes > 1 and tau < 0.1 * float(gaps.min()):
             users = [user]
-        elif len(users) > c.max_group:
-            near = sorted(users[1:], key=lambda v: abs(geometry[v].s - g_u.s))
-            users = [user, *near[: c.max_group - 1]]
+        # The members' places predicted to t, all at once (see _Place.at).
+        pl = [places[v] for v in users]
+        dt = t - np.array([p.t for p in pl])
+        db = area.b - np.array([p.b for p in pl])
+        normals = np.array([p.normal for p in pl])
+        tangents = np.array([p.tangent for p in pl])
+        velocity = np.array([p.v for p in pl])
+        d = np.array([p.d for p in pl]) + ((velocity * dt[:, None] - db) * normals).sum(axis=1)
+        if len(users) > c.max_group:
+            s = np.array([p.s for p in pl]) + ((velocity * dt[:, None] - db) * tangents).sum(1)
+            keep = np.argsort(np.abs(s - s[0]), kind="stable")[: c.max_group]  # u is first
+            users, d = [users[k] for k in keep], d[keep]
+            pl = [pl[k] for k in keep]
         beliefs = [prior] + [
             b if (b := self._users[v].belief) is not None else np.full(lanes, 1.0 / lanes)
             for v in users[1:]
         ]
-        gs = [geometry[v] for v in users]
-        sigma = np.sqrt([c.sigma_lane**2 + g.lateral_var for g in gs])
+        sigma = np.sqrt([c.sigma_lane**2 + p.lateral_var for p in pl])
         with np.errstate(divide="ignore"):
             log_prior = np.log(np.array(beliefs))
-        result = best_assignment(
-            np.array([g.d for g in gs]),
-            np.array([g.offsets for g in gs]),
-            sigma,
-            log_prior,
-            0.0,
-            tau,
-        )
+        result = best_assignment(d, np.array([p.offsets for p in pl]), sigma, log_prior, 0.0, tau)
         lane = int(result.lanes[0])
         posterior = result.marginals[0]
         state.belief = posterior

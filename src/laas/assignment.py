@@ -51,20 +51,41 @@ class Assignment:
     candidates: int
 
 
-def _check(
-    d: np.ndarray, offsets: np.ndarray, sigma: np.ndarray, log_prior: np.ndarray
-) -> tuple[int, int]:
-    n, lanes = offsets.shape
-    if d.shape != (n,) or sigma.shape != (n,) or log_prior.shape != (n, lanes):
-        raise ValueError(
-            f"shapes disagree: d {d.shape}, offsets {offsets.shape}, sigma {sigma.shape}, "
-            f"log_prior {log_prior.shape}; expected (N,), (N, L), (N,), (N, L)"
-        )
-    if n == 0 or lanes == 0:
-        raise ValueError("an assignment needs at least one user and one lane")
-    if not np.all(sigma > 0):
-        raise ValueError("every sigma must be positive")
-    return n, lanes
+@dataclass(frozen=True)
+class _Problem:
+    """The inputs as float arrays, checked: w = 1/sigma^2, lp floored, w0 = 1/tau^2."""
+
+    d: np.ndarray
+    offsets: np.ndarray
+    sigma: np.ndarray
+    w: np.ndarray
+    lp: np.ndarray
+    w0: float
+
+    @classmethod
+    def of(
+        cls,
+        d: np.ndarray,
+        offsets: np.ndarray,
+        sigma: np.ndarray,
+        log_prior: np.ndarray,
+        delta_sigma: float,
+    ) -> _Problem:
+        d = np.asarray(d, dtype=float)
+        offsets = np.asarray(offsets, dtype=float)
+        sigma = np.asarray(sigma, dtype=float)
+        lp = np.maximum(np.asarray(log_prior, dtype=float), _LOG_FLOOR)
+        n, lanes = offsets.shape
+        if d.shape != (n,) or sigma.shape != (n,) or lp.shape != (n, lanes):
+            raise ValueError(
+                f"shapes disagree: d {d.shape}, offsets {offsets.shape}, sigma {sigma.shape}, "
+                f"log_prior {lp.shape}; expected (N,), (N, L), (N,), (N, L)"
+            )
+        if n == 0 or lanes == 0:
+            raise ValueError("an assignment needs at least one user and one lane")
+        if not np.all(sigma > 0):
+            raise ValueError("every sigma must be positive")
+        return cls(d, offsets, sigma, 1.0 / sigma**2, lp, 1.0 / delta_sigma**2)
 
 
 def _costs(
@@ -121,13 +142,9 @@ def best_assignment(
     sigma: (N,) lateral 1-sigma per user; log_prior: (N, L) log lane probabilities.
     The marginals mix the `mixture_size` best assignments the sweep visited.
     """
-    d = np.asarray(d, dtype=float)
-    offsets = np.asarray(offsets, dtype=float)
-    sigma = np.asarray(sigma, dtype=float)
-    lp = np.maximum(np.asarray(log_prior, dtype=float), _LOG_FLOOR)
-    n, lanes = _check(d, offsets, sigma, lp)
-    w = 1.0 / sigma**2
-    w0 = 1.0 / delta_sigma**2
+    pr = _Problem.of(d, offsets, sigma, log_prior, delta_sigma)
+    d, offsets, sigma, w, lp, w0 = pr.d, pr.offsets, pr.sigma, pr.w, pr.lp, pr.w0
+    n, lanes = offsets.shape
     a = d[:, None] - offsets  # (N, L): a_il = d_i - o_il
 
     # Breakpoints of user i between lanes l and m, where c_il = c_im:
@@ -198,13 +215,9 @@ def enumerate_assignments(
 
     Its `marginals` mix every assignment, so they are the exact plug-in posterior.
     """
-    d = np.asarray(d, dtype=float)
-    offsets = np.asarray(offsets, dtype=float)
-    sigma = np.asarray(sigma, dtype=float)
-    lp = np.maximum(np.asarray(log_prior, dtype=float), _LOG_FLOOR)
-    n, lanes = _check(d, offsets, sigma, lp)
-    w = 1.0 / sigma**2
-    w0 = 1.0 / delta_sigma**2
+    pr = _Problem.of(d, offsets, sigma, log_prior, delta_sigma)
+    d, offsets, sigma, w, lp, w0 = pr.d, pr.offsets, pr.sigma, pr.w, pr.lp, pr.w0
+    n, lanes = offsets.shape
     hs = np.array(list(itertools.product(range(lanes), repeat=n)), dtype=np.intp)
     deltas, costs = _costs(hs, d, offsets, w, lp, delta_mean, w0)
     k = int(np.argmin(costs))

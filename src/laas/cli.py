@@ -6,18 +6,16 @@ import argparse
 import json
 import logging
 import os
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from laas.config import EngineConfig, Mode
 from laas.errors import LaasError, TraceError
 from laas.hdmap import HdMap
 from laas.scenario import MAPS
 from ldm import BrokerSettings, LdmError
+from ldm.cli import broker_settings, wait_for_signal
 
 __all__ = ["main"]
 
@@ -177,17 +175,7 @@ def _cmd_bench(a: argparse.Namespace) -> int:
 
 
 def _broker(a: argparse.Namespace) -> BrokerSettings:
-    values: dict[str, Any] = {"url": a.cluster, "ca_file": a.ca_file, "username": a.username}
-    if a.username is not None:
-        values["password_env"] = a.password_env
-    return BrokerSettings(**values)
-
-
-def _wait_for_signal() -> None:
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    stop.wait()
+    return broker_settings(a.cluster, a.ca_file, a.username, a.password_env)
 
 
 def _cmd_worker(a: argparse.Namespace) -> int:
@@ -205,7 +193,7 @@ def _cmd_worker(a: argparse.Namespace) -> int:
         flush=True,
     )
     try:
-        _wait_for_signal()
+        wait_for_signal()
     finally:
         provider.stop()
         s = service.stats
@@ -311,6 +299,13 @@ def _cmd_bench_filter(a: argparse.Namespace) -> int:
     return 0
 
 
+def _scenario_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated GNSS errors")
+    p.add_argument("--sigma-pos", type=float, default=1.0, help="receiver position noise, m")
+    p.add_argument("--sigma-vel", type=float, default=0.25, help="receiver speed noise, m/s")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -362,10 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="run a scenario's road users as live LDM participants")
     _connection_args(p, "LAAS")
-    p.add_argument("--scenario", default="messe-hamburg")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma-pos", type=float, default=1.0)
-    p.add_argument("--sigma-vel", type=float, default=0.25)
+    _scenario_args(p)
     p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
     p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
     p.set_defaults(func=_cmd_simulate)
@@ -395,18 +387,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_bench_filter)
 
     p = sub.add_parser("scenario", help="write a simulated trace and its ground truth")
-    p.add_argument("--scenario", default="messe-hamburg")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma-pos", type=float, default=1.0)
-    p.add_argument("--sigma-vel", type=float, default=0.25)
+    _scenario_args(p)
     p.add_argument("--out", required=True, help="folder for trace.jsonl and truth.jsonl")
     p.set_defaults(func=_cmd_scenario)
 
     p = sub.add_parser("plot", help="pictures like the paper's Fig. 3 and Fig. 4")
-    p.add_argument("--scenario", default="messe-hamburg")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma-pos", type=float, default=1.0)
-    p.add_argument("--sigma-vel", type=float, default=0.25)
+    _scenario_args(p)
     p.add_argument("--out", required=True, help="folder for the PNG files")
     p.set_defaults(func=_cmd_plot)
     return parser

@@ -22,7 +22,7 @@ from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core import Core
 from ldm.errors import LdmError
 
-__all__ = ["main"]
+__all__ = ["broker_settings", "core_config", "main", "wait_for_signal"]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -70,9 +70,10 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _broker_settings(
+def broker_settings(
     url: str, ca_file: Path | None, username: str | None, env: str
 ) -> BrokerSettings:
+    """Broker settings from command-line values; the password is read from `env`."""
     values: dict[str, Any] = {"url": url, "ca_file": ca_file, "username": username}
     if username is not None:
         values["password_env"] = env
@@ -81,10 +82,10 @@ def _broker_settings(
 
 def core_config(args: argparse.Namespace) -> CoreConfig:
     """The CoreConfig the `ldm core` arguments describe."""
-    cluster = _broker_settings(args.cluster, args.ca_file, args.username, args.password_env)
+    cluster = broker_settings(args.cluster, args.ca_file, args.username, args.password_env)
     backbone = None
     if args.backbone:
-        backbone = _broker_settings(
+        backbone = broker_settings(
             args.backbone, args.ca_file, args.backbone_username, args.backbone_password_env
         )
     return build(
@@ -105,7 +106,8 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
     )
 
 
-def _wait_for_signal() -> None:
+def wait_for_signal() -> None:
+    """Block until SIGINT or SIGTERM (a service's main loop)."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -123,13 +125,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "broker":
             broker = EmbeddedBroker(args.host, args.port).start()
             print(f"ldm broker listening on {broker.url}", flush=True)
-            _wait_for_signal()
+            wait_for_signal()
             broker.stop()
         else:
             core = Core(core_config(args)).start(timeout=30)
             backbone = f" and {args.backbone}" if args.backbone else ""
             print(f"ldm core {args.name} running on {args.cluster}{backbone}", flush=True)
-            _wait_for_signal()
+            wait_for_signal()
             core.stop()
     except LdmError as exc:
         print(f"ldm: {exc}", flush=True)

@@ -294,7 +294,8 @@ class Engine:
     ) -> tuple[int, float, np.ndarray]:
         """Section IV-D: predict and update the joint hypotheses; place u on its lane."""
         joint = group.joint
-        assert joint is not None  # paper mode groups always have one
+        if joint is None:
+            raise RuntimeError(f"segment {segment.id}: paper mode group without its joint filter")
         g_u = geometry[user]
         transition, direction = self._prediction(self._users[user], segment, g_u)
         # c_v[l] = p_v + (o_l - d_v) n_v: the filtered fix moved across onto lane l.

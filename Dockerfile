@@ -1,5 +1,5 @@
 # One image for every Python service of the deployment: `ldm core`, `laas worker`,
-# `laas simulate`, deploy/simulate.py (see docker-compose.yml). No entrypoint: the
+# `laas simulate` (see docker-compose.yml). No entrypoint: the
 # command is the program.
 #
 #   docker build -t laas .
@@ -21,7 +21,7 @@ RUN pip install . && rm -rf build src/*.egg-info
 
 COPY maps ./maps
 # The containers' health checks and the compose simulator (one account per road user).
-COPY deploy/healthcheck.py deploy/simulate.py ./deploy/
+COPY deploy/healthcheck.py ./deploy/
 
 # laas.scenario finds maps/ two folders above the package, the source-tree layout; in
 # site-packages that is .../lib/python3.11/maps, so point it at /app/maps.

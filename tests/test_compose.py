@@ -315,7 +315,8 @@ def test_cores_and_worker_match_the_topology() -> None:
     assert worker["command"][:2] == ["laas", "worker"]
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"
     sim = services["simulator"]["command"]
-    assert sim[:2] == ["python", "/app/deploy/simulate.py"]
+    assert sim[:2] == ["laas", "simulate"]
+    assert sim[sim.index("--account-prefix") + 1] == "sim-"
     assert sim[sim.index("--cluster") + 1] == "mqtt://broker-user:1883"
     # configuration by environment
     changed = load_compose({**SECRETS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
@@ -337,7 +338,7 @@ def test_dockerfile_builds_a_non_root_image_without_entrypoint() -> None:
     assert users and users[-1] not in ("root", "0")
     # what the compose file runs from the image is copied into it
     copied = " ".join(line for line in lines if line.startswith("COPY"))
-    for path in ("pyproject.toml", "src", "maps", "deploy/healthcheck.py", "deploy/simulate.py"):
+    for path in ("pyproject.toml", "src", "maps", "deploy/healthcheck.py"):
         assert path in copied, path
     ignored = (ROOT / ".dockerignore").read_text().split()
     assert ".venv" in ignored and ".git" in ignored
@@ -360,7 +361,15 @@ def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> Non
     hashes = (tmp_path / "passwd").read_text()
     users = [line.split(":")[0] for line in hashes.splitlines()]
     simulated = subprocess.run(
-        [sys.executable, str(ROOT / "deploy" / "simulate.py"), "--accounts"],
+        [
+            sys.executable,
+            "-m",
+            "laas.cli",
+            "simulate",
+            "--account-prefix",
+            "sim-",
+            "--list-accounts",
+        ],
         check=True,
         capture_output=True,
         text=True,

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from laas.config import EngineConfig, Mode
-from laas.errors import LaasError, TraceError
+from laas.errors import ConfigError, LaasError, TraceError
 from laas.hdmap import HdMap
 from laas.scenario import MAPS
 from ldm import BrokerSettings, LdmError
@@ -175,6 +175,8 @@ def _cmd_bench(a: argparse.Namespace) -> int:
 
 
 def _broker(a: argparse.Namespace) -> BrokerSettings:
+    if not a.cluster:
+        raise ConfigError("give the cluster broker: --cluster mqtt://HOST:PORT (or LAAS_CLUSTER)")
     return broker_settings(a.cluster, a.ca_file, a.username, a.password_env)
 
 
@@ -207,7 +209,7 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from laas.evaluate import score
-    from laas.participants import run_participants
+    from laas.participants import accounts, run_participants
     from laas.scenario import get_scenario, simulate
     from laas.trace import format_answer
 
@@ -219,14 +221,21 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         scenario.errors.model_copy(update={"sigma_pos": a.sigma_pos, "sigma_vel": a.sigma_vel}),
         a.seed,
     )
+    if a.list_accounts:
+        print("\n".join(accounts(trace, a.account_prefix or "").values()))
+        return 0
+    cluster = _broker(a)
+    if a.account_prefix is not None:  # one account per road user, one password for all
+        cluster = broker_settings(cluster.url, a.ca_file, a.account_prefix, a.password_env)
     print(
         f"laas simulate: {len(trace.fixes)} fixes of {len(scenario.users)} road users "
         f"at {a.speedup:g}x real time",
         file=sys.stderr,
     )
     live = run_participants(
-        _broker(a),
+        cluster,
         trace,
+        account_prefix=a.account_prefix,
         speedup=a.speedup,
         progress=print_sent,
     )
@@ -262,7 +271,6 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
     p.add_argument(
         "--cluster",
         default=os.environ.get(f"{env_prefix}_CLUSTER"),
-        required=f"{env_prefix}_CLUSTER" not in os.environ,
         help=f"cluster broker, mqtt[s]://HOST:PORT (env {env_prefix}_CLUSTER)",
     )
     p.add_argument(
@@ -360,6 +368,15 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_args(p)
     p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
     p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
+    p.add_argument(
+        "--account-prefix",
+        default=os.environ.get("LAAS_ACCOUNT_PREFIX"),
+        help="log each road user in as its own account, PREFIX + user, with the password "
+        "in --password-env (env LAAS_ACCOUNT_PREFIX)",
+    )
+    p.add_argument(
+        "--list-accounts", action="store_true", help="print the accounts the users need, exit"
+    )
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")

@@ -24,7 +24,7 @@ from laas.scenario import Trace
 from laas.service import SERVICE_NAME
 from ldm import BrokerSettings, Participant, Session
 
-__all__ = ["LiveRun", "run_participants"]
+__all__ = ["LiveRun", "accounts", "run_participants"]
 
 
 @dataclass
@@ -52,22 +52,41 @@ def _wait_for_service(participant: Participant, timeout: float) -> None:
     )
 
 
+def accounts(trace: Trace, prefix: str) -> dict[str, str]:
+    """Road user -> the account (and MQTT client id) it connects with: prefix + user."""
+    return {u: f"{prefix}{u}" for u in sorted({f.user for f in trace.fixes})}
+
+
 def run_participants(
     cluster: BrokerSettings | str,
     trace: Trace,
     *,
+    account_prefix: str | None = None,
     speedup: float = 1.0,
     reply_timeout: float = 5.0,
     discovery_timeout: float = 20.0,
     progress: Callable[[int, int], None] | None = None,
     **participant_settings: Any,
 ) -> LiveRun:
-    """Drive every user of `trace` through the user-cluster broker at `cluster`."""
-    users = sorted({f.user for f in trace.fixes})
-    tag = secrets.token_hex(3)
+    """Drive every user of `trace` through the user-cluster broker at `cluster`.
+
+    Without `account_prefix` all users share the broker settings and get random client
+    ids. With it, each user logs in as its own account, `account_prefix` + user, with the
+    password of `cluster` and that name as client id: what a broker that confines every
+    account to its own topics (`use_username_as_clientid` and a %u ACL) requires.
+    """
+    base = BrokerSettings.of(cluster)
+    if account_prefix is None:
+        tag = secrets.token_hex(3)
+        logins = {u: (base, f"{u}-{tag}") for u in sorted({f.user for f in trace.fixes})}
+    else:
+        logins = {
+            u: (base.model_copy(update={"username": name}), name)
+            for u, name in accounts(trace, account_prefix).items()
+        }
     participants = {
-        u: Participant.create(cluster, client_id=f"{u}-{tag}", **participant_settings)
-        for u in users
+        u: Participant.create(settings, client_id=client_id, **participant_settings)
+        for u, (settings, client_id) in logins.items()
     }
     sessions: dict[str, Session] = {}
     futures: list[tuple[int, float, Future[dict[str, Any]]]] = []

@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 
 from laas.hdmap import HdMap
-from laas.service import LaasService
+from laas.service import LaasService, WorkerConfig
 from ldm import Request
 
 NOW = 1_700_000_000.0
@@ -50,7 +50,8 @@ def test_bad_fixes_get_an_error_naming_the_field(hdmap: HdMap) -> None:
 
 def test_clock_checks_are_relative_to_the_sessions_first_fix(hdmap: HdMap) -> None:
     clock = Clock()
-    service = LaasService(hdmap, wall_clock=clock, max_future=30, max_past=600, max_speedup=100)
+    limits = WorkerConfig(max_future=30, max_past=600, max_speedup=100)
+    service = LaasService(hdmap, worker=limits, wall_clock=clock)
     ahead = send(service, "x", NOW + 31)
     assert ahead["error"]["kind"] == "clock" and fields(ahead) == {"timestamp"}
     assert "ahead" in ahead["error"]["message"]
@@ -65,3 +66,22 @@ def test_clock_checks_are_relative_to_the_sessions_first_fix(hdmap: HdMap) -> No
     assert send(service, "fast", clock.now + 45)["error"]["kind"] == "clock"
     assert "segment" in send(service, "sim", NOW + 60.0)
     assert service.stats.clock == 3
+
+
+def test_pseudonyms_are_forgotten_by_the_wall_clock_and_capped(hdmap: HdMap) -> None:
+    """A session whose timestamps run ahead is still forgotten after track_timeout of
+    silence by the worker's own clock, and no more than max_pseudonyms are held."""
+    wall, tick = Clock(), Clock()
+    service = LaasService(hdmap, worker=WorkerConfig(max_pseudonyms=3), clock=tick, wall_clock=wall)
+    assert "segment" in send(service, "ahead", NOW + 100)  # 100 s ahead: allowed at first
+    for who in ("a", "b"):
+        assert "segment" in send(service, who, NOW)
+    assert service.sessions == 3
+    assert "segment" in send(service, "c", NOW + 0.5)  # a fourth: the stalest goes
+    assert service.sessions == 3 and service.stats.evicted == 1
+    assert service.engine.users == 3
+    wall.now += 6.0  # past track_timeout (5 s) of silence for a, b and c
+    tick.now += 6.0
+    assert "segment" in send(service, "d", wall.now)
+    assert service.sessions == 1 and service.engine.users == 1
+    assert (service.stats.expired, service.stats.evicted) == (3, 1)

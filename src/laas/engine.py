@@ -201,15 +201,16 @@ class Engine:
         now = now_ms / 1000.0
         gone = [u for u, s in self._users.items() if now - s.track.t > self.config.track_timeout]
         for user in gone:
-            self.forget(user)
-            self.stats.expired += 1
+            self.forget(user, expired=True)
         return gone
 
-    def forget(self, user: str) -> None:
-        """Drop a user's track and its place in any group (a rotated pseudonym, say)."""
+    def forget(self, user: str, *, expired: bool = False) -> None:
+        """Drop a user's track and its place in any group (a rotated pseudonym, say);
+        `expired` counts it as an expiry (the live worker expires by its own clock)."""
         state = self._users.pop(user, None)
         if state is not None:
             self._leave(user, state)
+            self.stats.expired += expired
 
     # -- groups ----------------------------------------------------------------------------
 

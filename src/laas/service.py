@@ -22,8 +22,10 @@ What the worker refuses, each with an error reply ``{"error": {"kind", "message"
 - ``stale``: a duplicate, or older than the pseudonym's last fix;
 - ``internal``: the engine failed on this fix (logged; a bug to report).
 
-Tracks are expired by the wall clock (``wall_clock``), not by the newest timestamp
-seen, so no participant's clock can expire another's track.
+A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
+seconds of the worker's wall clock after its last accepted fix, whatever its timestamps
+say, and the worker holds at most ``max_pseudonyms`` of them (the least recently heard
+goes first), so neither a participant's clock nor a flood of pseudonyms grows its memory.
 """
 
 from __future__ import annotations
@@ -31,12 +33,13 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib.metadata import version
 from typing import Any
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from laas.config import EngineConfig
 from laas.engine import Engine
@@ -44,7 +47,14 @@ from laas.hdmap import HdMap
 from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 
-__all__ = ["SERVICE_NAME", "LaasService", "WorkerStats", "service_spec", "start_worker"]
+__all__ = [
+    "SERVICE_NAME",
+    "LaasService",
+    "WorkerConfig",
+    "WorkerStats",
+    "service_spec",
+    "start_worker",
+]
 
 SERVICE_NAME = "laas"
 
@@ -62,6 +72,36 @@ def service_spec() -> ServiceSpec:
     )
 
 
+class WorkerConfig(BaseModel):
+    """The worker's limits on its input, validated once at start."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    max_future: float = Field(
+        default=120.0, ge=0, description="a session's first fix may lead the clock by, s"
+    )
+    max_past: float = Field(default=600.0, gt=0, description="a fix may lag the clock by, s")
+    max_speedup: float = Field(
+        default=100.0, ge=1, description="later fixes may run this much faster than real time"
+    )
+    max_distance: float = Field(
+        default=10_000.0, ge=0, description="fixes this far outside the map are refused, m"
+    )
+    max_pseudonyms: int = Field(
+        default=100_000, ge=1, description="pseudonyms held at once; the stalest go first"
+    )
+    expire_every: float = Field(default=1.0, gt=0, description="housekeeping interval, s")
+
+
+@dataclass
+class _Session:
+    """What the worker remembers of a pseudonym besides its track (wall clock, seconds)."""
+
+    t0: float  # timestamp of its first accepted fix
+    wall0: float  # wall clock then
+    last: float  # wall clock at its last accepted fix
+
+
 @dataclass
 class WorkerStats:
     """What the worker did with its input."""
@@ -72,6 +112,8 @@ class WorkerStats:
     outside: int = 0
     clock: int = 0
     failed: int = 0
+    expired: int = 0  # pseudonyms forgotten after track_timeout of silence
+    evicted: int = 0  # pseudonyms forgotten because max_pseudonyms were held
 
 
 def _error(kind: str, message: str, fields: list[dict[str, str]] | None = None) -> dict[str, Any]:
@@ -85,33 +127,24 @@ class LaasService:
         self,
         hdmap: HdMap,
         config: EngineConfig | None = None,
+        worker: WorkerConfig | None = None,
         *,
-        expire_every: float = 1.0,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
-        max_future: float = 120.0,
-        max_past: float = 600.0,
-        max_speedup: float = 100.0,
-        max_distance: float = 10_000.0,
     ) -> None:
         self.engine = Engine(hdmap, config)
+        self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
         self._map = hdmap
         self._clock = clock
         self._wall = wall_clock
-        self.max_future = max_future
-        self.max_past = max_past
-        self.max_speedup = max_speedup
-        self.max_distance = max_distance
-        self._expire_every = expire_every
-        self._next_expiry = clock() + expire_every
-        # pseudonym -> (timestamp of its first accepted fix, wall clock then), seconds
-        self._anchors: dict[str, tuple[float, float]] = {}
+        self._next_expiry = clock() + self.config.expire_every
+        self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
 
     @property
     def sessions(self) -> int:
         """Pseudonyms the worker holds state for (tracks and clock anchors)."""
-        return len(self._anchors)
+        return len(self._sessions)
 
     def handle(self, request: Request) -> Mapping[str, Any]:
         """One fix of one pseudonym -> its corrected position, or an error reply."""
@@ -137,12 +170,7 @@ class LaasService:
             self.stats.failed += 1
             log.exception("the engine failed on a fix")
             return _error("internal", "the service failed on this fix; it has been logged")
-        self._anchors.setdefault(request.pseudonym, (measurement.timestamp / 1000.0, now))
-        tick = self._clock()
-        if tick >= self._next_expiry:
-            for gone in self.engine.expire(int(now * 1000)):
-                self._anchors.pop(gone, None)
-            self._next_expiry = tick + self._expire_every
+        self._heard(request.pseudonym, measurement.timestamp / 1000.0, now)
         if answer is None:
             self.stats.refused += 1
             return _error(
@@ -153,24 +181,48 @@ class LaasService:
         self.stats.answered += 1
         return answer.model_dump()
 
+    def _heard(self, pseudonym: str, t: float, now: float) -> None:
+        """Note an accepted fix; forget the silent and, past the cap, the stalest."""
+        tick = self._clock()
+        if tick >= self._next_expiry:
+            self._next_expiry = tick + self.config.expire_every
+            timeout = self.engine.config.track_timeout
+            while self._sessions:
+                oldest, stalest = next(iter(self._sessions.items()))
+                if now - stalest.last <= timeout:
+                    break
+                del self._sessions[oldest]
+                self.engine.forget(oldest, expired=True)
+                self.stats.expired += 1
+        session = self._sessions.get(pseudonym)
+        if session is None:
+            self._sessions[pseudonym] = _Session(t, now, now)
+        else:
+            session.last = now
+            self._sessions.move_to_end(pseudonym)
+        while len(self._sessions) > self.config.max_pseudonyms:
+            gone, _ = self._sessions.popitem(last=False)
+            self.engine.forget(gone)
+            self.stats.evicted += 1
+
     def _check_clock(self, pseudonym: str, t: float, now: float) -> dict[str, Any] | None:
         """Refuse a timestamp too far behind the wall clock, or too far ahead of it."""
+        c = self.config
         problem = None
-        if t < now - self.max_past:
-            problem = f"{now - t:.0f} s behind the service's clock (limit {self.max_past:g} s)"
+        if t < now - c.max_past:
+            problem = f"{now - t:.0f} s behind the service's clock (limit {c.max_past:g} s)"
         else:
-            anchor = self._anchors.get(pseudonym)
-            if anchor is None and t > now + self.max_future:
+            session = self._sessions.get(pseudonym)
+            if session is None and t > now + c.max_future:
                 problem = (
                     f"{t - now:.0f} s ahead of the service's clock "
-                    f"(limit {self.max_future:g} s for a session's first fix)"
+                    f"(limit {c.max_future:g} s for a session's first fix)"
                 )
-            elif anchor is not None:
-                t0, wall0 = anchor
-                limit = t0 + self.max_speedup * max(0.0, now - wall0) + self.max_future
+            elif session is not None:
+                limit = session.t0 + c.max_speedup * max(0.0, now - session.wall0) + c.max_future
                 if t > limit:
                     problem = (
-                        f"runs ahead of the service's clock more than {self.max_speedup:g} "
+                        f"runs ahead of the service's clock more than {c.max_speedup:g} "
                         "times faster than real time since this session's first fix"
                     )
         if problem is None:
@@ -186,7 +238,7 @@ class LaasService:
         """Refuse a fix outside the map's area (plus ``max_distance``)."""
         x, y = self._map.projection.to_utm(m.longitude, m.latitude)
         x0, y0, x1, y1 = self._map.bounds
-        d = self.max_distance
+        d = self.config.max_distance
         if (
             math.isfinite(x)
             and math.isfinite(y)
@@ -207,21 +259,15 @@ def start_worker(
     cluster: BrokerSettings | str,
     hdmap: HdMap,
     config: EngineConfig | None = None,
-    *,
-    max_future: float = 120.0,
-    max_past: float = 600.0,
-    max_speedup: float = 100.0,
+    worker: WorkerConfig | None = None,
     **provider_settings: Any,
 ) -> tuple[Provider, LaasService]:
     """Connect to a service-cluster broker, announce `laas` and serve until stopped.
 
-    ``max_future``, ``max_past`` and ``max_speedup`` are the clock checks of
-    `LaasService`; ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``,
-    ``max_age``, ``data_qos``, ...).
+    ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``, ``max_age``,
+    ``data_qos``, ...).
     """
-    service = LaasService(
-        hdmap, config, max_future=max_future, max_past=max_past, max_speedup=max_speedup
-    )
+    service = LaasService(hdmap, config, worker)
     provider = Provider.create(cluster, service_spec(), service.handle, **provider_settings)
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-__all__ = ["CorrectedPosition", "GpsMeasurement", "LaneType"]
+__all__ = ["CorrectedPosition", "GpsMeasurement", "LaneType", "problems"]
 
 LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
 
@@ -67,3 +67,9 @@ class CorrectedPosition(BaseModel):
     accuracy: Annotated[float, Field(ge=0.0)] = Field(description="horizontal 1-sigma, m")
     accuracy_cross: Annotated[float, Field(ge=0.0)] = Field(description="cross-road 1-sigma, m")
     accuracy_along: Annotated[float, Field(ge=0.0)] = Field(description="along-road 1-sigma, m")
+
+
+def problems(error: ValidationError, whole: str = "payload") -> list[tuple[str, str]]:
+    """(field, problem) for each thing wrong in a refused input; `whole` names the input
+    itself where the problem is not one field's."""
+    return [(".".join(str(x) for x in e["loc"]) or whole, e["msg"]) for e in error.errors()]

@@ -44,7 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from laas.config import EngineConfig
 from laas.engine import Engine
 from laas.hdmap import HdMap
-from laas.models import CorrectedPosition, GpsMeasurement
+from laas.models import CorrectedPosition, GpsMeasurement, problems
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 
 __all__ = [
@@ -152,11 +152,9 @@ class LaasService:
             measurement = GpsMeasurement.model_validate(request.payload)
         except ValidationError as exc:
             self.stats.invalid += 1
-            fields = [
-                {"field": ".".join(str(x) for x in e["loc"]) or "payload", "problem": e["msg"]}
-                for e in exc.errors()
-            ]
-            summary = "; ".join(f"{f['field']}: {f['problem']}" for f in fields)
+            found = problems(exc)
+            summary = "; ".join(f"{field}: {problem}" for field, problem in found)
+            fields = [{"field": field, "problem": problem} for field, problem in found]
             return _error("invalid", f"measurement refused: {summary}", fields)
         now = self._wall()
         refusal = self._check_clock(request.pseudonym, measurement.timestamp / 1000.0, now)

@@ -17,7 +17,7 @@ from typing import IO
 from pydantic import ValidationError
 
 from laas.errors import TraceError
-from laas.models import CorrectedPosition, GpsMeasurement
+from laas.models import CorrectedPosition, GpsMeasurement, problems
 
 __all__ = ["TraceLine", "format_answer", "format_measurement", "read_trace", "write_lines"]
 
@@ -31,14 +31,6 @@ class TraceLine:
     line: int
     user: str
     measurement: GpsMeasurement
-
-
-def _describe(error: ValidationError) -> str:
-    parts = []
-    for e in error.errors():
-        field = ".".join(str(x) for x in e["loc"]) or "line"
-        parts.append(f"{field}: {e['msg']}")
-    return "; ".join(parts)
 
 
 def read_trace(lines: Iterable[str], source: str = "<trace>") -> Iterator[TraceLine | TraceError]:
@@ -65,7 +57,8 @@ def read_trace(lines: Iterable[str], source: str = "<trace>") -> Iterator[TraceL
         try:
             measurement = GpsMeasurement.model_validate(data)
         except ValidationError as exc:
-            yield TraceError(f"{where}: {_describe(exc)}")
+            found = problems(exc, whole="line")
+            yield TraceError(f"{where}: " + "; ".join(f"{f}: {p}" for f, p in found))
             continue
         yield TraceLine(number, user, measurement)
 

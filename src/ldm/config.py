@@ -156,6 +156,12 @@ class CoreConfig(_Settings):
         return {"url": value} if isinstance(value, str) else value
 
     @property
+    def rekey_interval(self) -> float:
+        """Shortest time between two ephemeral keys of one session: a quarter of the
+        rotation period, at least 1 s, but never longer than the period itself."""
+        return min(self.rotation_period, max(1.0, self.rotation_period / 4))
+
+    @property
     def tick(self) -> float:
         """Housekeeping interval: a fraction of the shortest period, 20 ms to 0.5 s."""
         shortest = min(self.grace or 2.0, self.idle_timeout, self.service_ttl, self.rotation_period)

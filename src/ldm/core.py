@@ -74,6 +74,7 @@ class _Pseudonym:
     name: str
     key: str
     created: float
+    service_key: str  # the service's public key when this pseudonym was made
     until: float = float("inf")  # end of grace once replaced
 
 
@@ -84,7 +85,7 @@ class _Session:
     last_seen: float
     current: _Pseudonym | None = None
     old: list[_Pseudonym] = field(default_factory=list)
-    rotate_sent: bool = False
+    next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
 
 
 @dataclass(slots=True)
@@ -133,6 +134,8 @@ class CoreStats:
     rejected_rate: int = 0
     rejected_size: int = 0
     rejected_clock: int = 0
+    rejected_rekey: int = 0
+    """Input under a new ephemeral key too soon after the last one (answered ``rate_limited``)."""
     granted: int = 0
     answered_nosession: int = 0
     """Input or requests for a session the core does not hold (answered ``nosession``)."""
@@ -547,7 +550,15 @@ class Core(Worker[Event]):
             return
         now = time.time()
         session.last_seen = now
-        pseudonym = self._pseudonym_for(session, env.k, now)
+        pseudonym = self._pseudonym_for(session, env.k, svc.description.public_key, now)
+        if pseudonym is None:
+            self.stats.rejected_rekey += 1
+            error = (
+                f"k: a new ephemeral key at most every {self.config.rekey_interval:g} s "
+                "per session; keep the current key until the core asks to rotate"
+            )
+            self._reject(client, service, "rate_limited", error, c=env.c)
+            return
         payload = env.encode()
         if svc.origin == self.name:
             self.cluster.publish(
@@ -561,15 +572,28 @@ class Core(Worker[Event]):
             return
         self.stats.forwarded_in += 1
 
-    def _pseudonym_for(self, session: _Session, key: str, now: float) -> str:
-        """The pseudonym bound to this ephemeral key; a new key means a new pseudonym."""
+    def _pseudonym_for(
+        self, session: _Session, key: str, service_key: str, now: float
+    ) -> str | None:
+        """The pseudonym bound to this ephemeral key; a new key means a new pseudonym.
+
+        Every pseudonym is new state here, at the service core, the provider and the
+        service, so a session may change keys at most every ``rekey_interval`` seconds
+        (None: refused), except when the service's own key changed (a restarted service).
+        """
         current = session.current
         if current is not None and current.key == key:
             return current.name
         for old in session.old:
             if old.key == key and old.until > now:
                 return old.name  # input sent before the rotation, still in its grace
-        fresh = _Pseudonym(new_pseudonym(), key, now)
+        if (
+            current is not None
+            and current.service_key == service_key
+            and now - current.created < self.config.rekey_interval
+        ):
+            return None
+        fresh = _Pseudonym(new_pseudonym(), key, now, service_key)
         if current is not None:
             current.until = now + self.config.grace
             session.old.append(current)
@@ -577,7 +601,7 @@ class Core(Worker[Event]):
                 self._pseudonyms.pop(session.old.pop(0).name, None)
             self.stats.rotations += 1
         session.current = fresh
-        session.rotate_sent = False
+        session.next_rotate = now + self.config.rotation_period
         self._pseudonyms[fresh.name] = session
         return fresh.name
 
@@ -623,9 +647,10 @@ class Core(Worker[Event]):
             for old in [p for p in session.old if p.until <= now]:
                 session.old.remove(old)
                 self._pseudonyms.pop(old.name, None)
-            current = session.current
-            if current and not session.rotate_sent and now - current.created >= cfg.rotation_period:
-                session.rotate_sent = True
+            if session.current is not None and now >= session.next_rotate:
+                # Again every period until a new key arrives: a lost notice (or a
+                # participant that reconnected with a clean session) only delays rotation.
+                session.next_rotate = now + cfg.rotation_period
                 self._notify(session.client, SessionNotice(kind="rotate", service=session.service))
 
 

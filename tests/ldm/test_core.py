@@ -1,0 +1,98 @@
+"""The core's session policy on a real broker: rotation notices, key churn, notices."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from ldm import Core, KeyPair, Provider
+from ldm.config import BrokerSettings
+from ldm.messages import Envelope, SessionNotice, SessionRequest
+from ldm.pytest_plugin import need_mosquitto
+from ldm.testing import MosquittoBroker, wait_for
+from ldm.transport import Event, Message, Transport
+
+from .deployment import ECHO, EchoService
+
+
+class RawParticipant:
+    """A participant without the library: it sends what a test says, keeps every notice."""
+
+    def __init__(self, url: str, client_id: str) -> None:
+        self.client_id = client_id
+        self._lock = threading.Lock()
+        self._notices: list[SessionNotice] = []
+        self.transport = Transport(BrokerSettings(url=url), client_id=client_id, sink=self._sink)
+        self.transport.subscribe(f"ldm/p/{client_id}/down/session", 1)
+        self.transport.start(timeout=5)
+
+    def _sink(self, event: Event) -> None:
+        if isinstance(event, Message):
+            with self._lock:
+                self._notices.append(SessionNotice.model_validate_json(event.payload))
+
+    def notices(self, kind: str) -> list[SessionNotice]:
+        with self._lock:
+            return [n for n in self._notices if n.kind == kind]
+
+    def open(self, service: str) -> None:
+        req = SessionRequest(c="open1", service=service, t=time.time())
+        self.transport.publish(
+            f"ldm/p/{self.client_id}/up/session", req.model_dump_json().encode(), 1
+        )
+        assert wait_for(lambda: self.notices("grant"), 5)
+
+    def send(self, service: str, key: KeyPair, c: str) -> None:
+        env = Envelope(c=c, t=time.time(), k=key.public, d="AAAA")
+        self.transport.publish(f"ldm/p/{self.client_id}/up/data/{service}", env.encode(), 1)
+
+
+@pytest.fixture
+def edge() -> Iterator[tuple[MosquittoBroker, Core]]:
+    need_mosquitto()
+    with MosquittoBroker() as broker:
+        core = Core.create(
+            "edge", broker.url, rotation_period=0.3, grace=0.3, idle_timeout=10.0
+        ).start(timeout=5)
+        provider = Provider.create(broker.url, ECHO, EchoService(), announce_interval=0.3)
+        provider.start(timeout=5)
+        try:
+            assert wait_for(lambda: bool(core.services), 5)
+            yield broker, core
+        finally:
+            provider.stop()
+            core.stop()
+
+
+@pytest.mark.mosquitto
+def test_rotate_is_repeated_until_a_new_key_comes_and_keys_cannot_churn(
+    edge: tuple[MosquittoBroker, Core],
+) -> None:
+    broker, core = edge
+    raw = RawParticipant(broker.url, "rolf")
+    try:
+        raw.open("echo")
+        first = KeyPair()
+        raw.send("echo", first, "a1")
+        assert wait_for(lambda: core.stats.forwarded_in == 1, 5)
+        # The participant ignores (or never got) the first rotate notice: it comes again
+        # every rotation period, so a lost notice only delays the rotation.
+        assert wait_for(lambda: len(raw.notices("rotate")) >= 3, 5)
+        second = KeyPair()
+        raw.send("echo", second, "a2")
+        assert wait_for(lambda: core.stats.rotations == 1 and core.stats.forwarded_in == 2, 5)
+        # A third key right away is one pseudonym too many: refused, counted, answered.
+        raw.send("echo", KeyPair(), "a3")
+        assert wait_for(lambda: core.stats.rejected_rekey == 1, 5)
+        assert wait_for(lambda: any(n.c == "a3" for n in raw.notices("rejected")), 5)
+        rejected = next(n for n in raw.notices("rejected") if n.c == "a3")
+        assert rejected.reason == "rate_limited" and rejected.error and "k:" in rejected.error
+        # The current key (and the old one, in its grace) still work.
+        raw.send("echo", second, "a4")
+        assert wait_for(lambda: core.stats.forwarded_in == 3, 5)
+        assert core.stats.rotations == 1
+    finally:
+        raw.transport.stop()

@@ -267,11 +267,11 @@ def hamburg_scenario() -> Scenario:
 def melbourne_scenario() -> Scenario:
     """A second, different scenario: a two-way street corner in Melbourne.
 
-    Seven road users of four kinds on `maps/melbourne-corner.geojson` for 120 s at 1 Hz:
-    two cars and a cyclist each way (one car and the cyclist going backwards against the
-    map's reference direction), a cyclist who swings into the driving lane and back, and a
-    pedestrian on each sidewalk. The common error is (+4 m E, -7 m N) and drifts as a
-    random walk of 0.05 m/sqrt(s).
+    Seven road users of three kinds on `maps/melbourne-corner.geojson` for 120 s at 1 Hz:
+    two cars and a cyclist along the map's reference direction (the cyclist swings into
+    the driving lane and back), a car and a cyclist against it, and a pedestrian on each
+    sidewalk, one each way. The common error is (+4 m E, -7 m N) and drifts as a random
+    walk of 0.05 m/sqrt(s).
     """
     return Scenario(
         name="melbourne-corner",

@@ -96,3 +96,15 @@ def test_expiry_and_forget_free_the_state(sydney: HdMap) -> None:
     assert engine.expire(T0 + 6000) == ["a"]
     engine.forget("b")
     assert engine.users == 0
+
+
+def test_distant_users_get_common_errors_of_their_own_areas() -> None:
+    from laas.common_error import CommonErrorField
+
+    field = CommonErrorField(2_000.0, 10.0, 0.05, 0.5)
+    here = field.at(np.array([500_000.0, 5_900_000.0]))
+    assert field.at(np.array([500_900.0, 5_900_300.0])) is here  # within size / 2
+    there = field.at(np.array([503_000.0, 5_900_000.0]))
+    assert there is not here
+    assert field.at(np.array([502_400.0, 5_900_100.0])) is there  # nearest centre wins
+    assert len(field.areas) == 2

@@ -149,7 +149,8 @@ class CommonError:
 
 class CommonErrorField:
     """One `CommonError` per area: a fix joins the nearest area centre within
-    `size / 2`, else founds a new area there (no grid seams on a compact map)."""
+    `size / 2`, else founds a new area there (no grid seams on a compact map). Areas are
+    indexed by a coarse grid of cell `size`, so finding one looks at nine cells at most."""
 
     def __init__(self, size: float, prior_sigma: float, drift: float, resolution: float) -> None:
         self.size = size
@@ -157,16 +158,24 @@ class CommonErrorField:
         self._drift = drift
         self._resolution = resolution
         self.areas: list[CommonError] = []
+        self._cells: dict[tuple[int, int], list[CommonError]] = {}
+
+    def _cell(self, xy: np.ndarray) -> tuple[int, int]:
+        return math.floor(float(xy[0]) / self.size), math.floor(float(xy[1]) / self.size)
 
     def at(self, xy: np.ndarray) -> CommonError:
         """The area whose centre is nearest `xy`, created if none is within size / 2."""
         best: CommonError | None = None
         best_d = self.size / 2.0
-        for area in self.areas:
-            dist = float(np.hypot(*(area.centre - xy)))
-            if dist <= best_d:
-                best, best_d = area, dist
+        ci, cj = self._cell(xy)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                for area in self._cells.get((ci + di, cj + dj), ()):
+                    dist = float(np.hypot(*(area.centre - xy)))
+                    if dist <= best_d:
+                        best, best_d = area, dist
         if best is None:
             best = CommonError(xy, self._prior, self._drift, self._resolution)
             self.areas.append(best)
+            self._cells.setdefault((ci, cj), []).append(best)
         return best

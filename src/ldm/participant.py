@@ -18,7 +18,7 @@ import secrets
 import threading
 import time
 from collections.abc import Mapping
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +28,7 @@ from pydantic import ValidationError
 from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, ParticipantConfig, build
-from ldm.crypto import KeyPair, SessionCipher
+from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import (
     ConnectError,
     CryptoError,
@@ -56,6 +56,17 @@ def _token() -> str:
     return secrets.token_urlsafe(9)
 
 
+def _settle(future: Future[Any], result: Any = None, error: BaseException | None = None) -> None:
+    """Complete a future unless it is done already (cancelled by its caller, or answered)."""
+    try:
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+    except InvalidStateError:
+        pass
+
+
 @dataclass(slots=True)
 class _Keys:
     """One ephemeral key and its cipher with the service: one pseudonym at the core."""
@@ -81,10 +92,12 @@ class _Pending:
 class Session:
     """An open session with one service: send input, get replies (thread-safe)."""
 
-    def __init__(self, participant: Participant, grant: SessionGrant) -> None:
+    def __init__(
+        self, participant: Participant, grant: SessionGrant, keys: _Keys | None = None
+    ) -> None:
         self._participant = participant
         self.grant = grant
-        self._keys = _Keys.new(grant.service)
+        self._keys = keys or _Keys.new(grant.service)
         self._pending: dict[str, _Pending] = {}
         self._lock = threading.Lock()
         self._reopen_c: str | None = None
@@ -133,9 +146,8 @@ class Session:
         keys = pending.keys
         pending.sent = time.time()
         pending.disconnects = self._participant.transport.disconnects
-        env = Envelope(
-            c=c, t=pending.sent, k=keys.pair.public, d=keys.cipher.seal(pending.plaintext, c)
-        )
+        sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
+        env = Envelope(c=c, t=pending.sent, k=keys.pair.public, d=sealed)
         if not self._participant._publish_input(self, env):
             self._fail(
                 c,
@@ -152,12 +164,18 @@ class Session:
         self.rotations += 1
 
     def _regrant(self, grant: SessionGrant) -> None:
-        """The core granted the session again: new key, re-send what is still waiting."""
+        """The core granted the session again: new key, re-send what is still waiting.
+
+        Each re-sent input gets a new correlation id: the old one travelled under the
+        old pseudonym, and the same id under the new one would link the two.
+        """
         self.grant = grant
         self._rotate()
         with self._lock:
-            waiting = list(self._pending.items())
-        for c, pending in waiting:
+            waiting, self._pending = list(self._pending.values()), {}
+            resend = [(_token(), p) for p in waiting]
+            self._pending.update(resend)
+        for c, pending in resend:
             pending.keys = self._keys
             self._send(c, pending)
 
@@ -167,23 +185,24 @@ class Session:
         if pending is None:
             return
         try:
-            payload = json.loads(pending.keys.cipher.open(env.d, env.c))
-        except (CryptoError, ValueError) as exc:
-            pending.future.set_exception(CryptoError(f"reply from {self.service.name!r}: {exc}"))
+            payload = json.loads(pending.keys.cipher.open(env.d, aad(env.c, env.t)))
+        except (CryptoError, ValueError, RecursionError) as exc:
+            error = CryptoError(f"reply from {self.service.name!r}: {exc}")
+            _settle(pending.future, error=error)
             return
-        pending.future.set_result(payload)
+        _settle(pending.future, payload)
 
     def _fail(self, c: str | None, error: Exception) -> None:
         with self._lock:
             pending = self._pending.pop(c, None) if c is not None else None
         if pending is not None:
-            pending.future.set_exception(error)
+            _settle(pending.future, error=error)
 
     def _fail_all(self, error: Exception) -> None:
         with self._lock:
             pending, self._pending = list(self._pending.values()), {}
         for p in pending:
-            p.future.set_exception(error)
+            _settle(p.future, error=error)
 
     def _expire(self, now: float, limit: float, disconnects: int) -> None:
         with self._lock:
@@ -194,9 +213,8 @@ class Session:
             why = "the input or its reply was lost or dropped as stale"
             if disconnects != p.disconnects:
                 why = "the connection to the broker dropped meanwhile; " + why
-            p.future.set_exception(
-                RequestTimeout(f"no reply from {self.service.name!r} within {limit:g} s: {why}")
-            )
+            error = RequestTimeout(f"no reply from {self.service.name!r} within {limit:g} s: {why}")
+            _settle(p.future, error=error)
 
 
 class Participant(Worker[Event]):
@@ -237,9 +255,20 @@ class Participant(Worker[Event]):
         return self
 
     def stop(self) -> None:
-        """Disconnect. No log-off is sent: the core drops idle sessions by itself."""
+        """Disconnect and fail every request still waiting (ConnectError).
+
+        No log-off is sent: the core drops idle sessions by itself.
+        """
         self.stop_worker()
         self.transport.stop()
+        error = ConnectError(f"participant {self.client_id!r} stopped before the answer came")
+        with self._lock:
+            opening, self._opening = list(self._opening.values()), {}
+            sessions = list(self._sessions.values())
+        for future in opening:
+            _settle(future, error=error)
+        for session in sessions:
+            session._fail_all(error)
 
     def __enter__(self) -> Participant:
         return self.start()
@@ -263,10 +292,7 @@ class Participant(Worker[Event]):
         future: Future[SessionGrant] = Future()
         with self._lock:
             self._opening[c] = future
-        request = SessionRequest(c=c, service=service, t=time.time())
-        self.transport.publish(
-            topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
-        )
+        self._request_session(c, service)
         try:
             grant = future.result(timeout)
         except FutureTimeout:
@@ -277,10 +303,22 @@ class Participant(Worker[Event]):
         finally:
             with self._lock:
                 self._opening.pop(c, None)
-        session = Session(self, grant)
         with self._lock:
+            old = self._sessions.get(service)
+            # The same service key: keep the ephemeral key (and so the pseudonym), as a
+            # new key so soon would be refused by the core (rekey_interval).
+            same = old is not None and old.service.public_key == grant.service.public_key
+            session = Session(self, grant, old._keys if old is not None and same else None)
             self._sessions[service] = session
+        if old is not None:
+            old._fail_all(SessionError(f"the session with {service!r} was opened again"))
         return session
+
+    def _request_session(self, c: str, service: str) -> None:
+        request = SessionRequest(c=c, service=service, t=time.time())
+        self.transport.publish(
+            topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
+        )
 
     def _publish_input(self, session: Session, env: Envelope) -> bool:
         qos = self.config.data_qos if self.config.data_qos is not None else session.grant.data_qos
@@ -291,12 +329,9 @@ class Participant(Worker[Event]):
         now = time.time()
         if session._reopen_c is not None and now - session._reopen_at < 1.0:
             return  # asked already; ask again only if no grant came within a second
-        c = session._reopen_c = _token()
+        session._reopen_c = _token()
         session._reopen_at = now
-        request = SessionRequest(c=c, service=session.service.name, t=time.time())
-        self.transport.publish(
-            topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
-        )
+        self._request_session(session._reopen_c, session.service.name)
 
     # --- worker thread ----------------------------------------------------------------
 
@@ -330,7 +365,7 @@ class Participant(Worker[Event]):
             with self._lock:
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
-                opening.set_result(notice.grant)
+                _settle(opening, notice.grant)  # a duplicate (QoS 1) grant finds it done
             elif session is not None and notice.c == session._reopen_c:
                 session._reopen_c = None
                 session._regrant(notice.grant)
@@ -339,7 +374,7 @@ class Participant(Worker[Event]):
             with self._lock:
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
-                opening.set_exception(error)
+                _settle(opening, error=error)
             elif session is not None and notice.c == session._reopen_c:
                 session._reopen_c = None
                 session._fail_all(error)  # the session cannot be re-opened
@@ -352,7 +387,7 @@ class Participant(Worker[Event]):
             with self._lock:
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
-                opening.set_exception(rejected)
+                _settle(opening, error=rejected)
             elif session is not None:
                 session._fail(notice.c, rejected)
         elif notice.kind == "rotate" and session is not None:

@@ -1,0 +1,141 @@
+"""The participant library on a real broker: no future is left pending, resends are unlinkable."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from ldm import ConnectError, Core, Participant, Provider, Request, SessionError
+from ldm.messages import Envelope
+from ldm.pytest_plugin import need_mosquitto
+from ldm.testing import MosquittoBroker, wait_for
+
+from .deployment import ECHO, Sniffer, has_service
+
+
+@dataclass
+class Holding:
+    """Echoes, except the first input marked ``hold``: that one gets no reply."""
+
+    requests: list[Request] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __call__(self, request: Request) -> dict[str, Any] | None:
+        with self.lock:
+            self.requests.append(request)
+            first = sum(r.payload == request.payload for r in self.requests) == 1
+        return None if request.payload.get("hold") and first else {"echo": request.payload}
+
+    def seen(self, payload: dict[str, Any]) -> list[Request]:
+        with self.lock:
+            return [r for r in self.requests if r.payload == payload]
+
+
+@dataclass
+class Cluster:
+    broker: MosquittoBroker
+    core: Core
+    service: Holding
+    provider: Provider
+    sniffer: Sniffer
+
+    def new_core(self) -> Core:
+        self.core.stop()
+        self.core = Core.create("edge", self.broker.url, data_qos=1).start(timeout=5)
+        return self.core
+
+
+@pytest.fixture
+def cluster() -> Iterator[Cluster]:
+    need_mosquitto()
+    with MosquittoBroker() as broker:
+        core = Core.create("edge", broker.url, data_qos=1).start(timeout=5)
+        service = Holding()
+        provider = Provider.create(broker.url, ECHO, service, announce_interval=0.3)
+        provider.start(timeout=5)
+        sniffer = Sniffer(broker.url, "edge")
+        c = Cluster(broker, core, service, provider, sniffer)
+        try:
+            yield c
+        finally:
+            sniffer.stop()
+            provider.stop()
+            c.core.stop()
+
+
+@pytest.mark.mosquitto
+def test_no_future_is_left_pending_on_reopen_stop_or_cancel(
+    cluster: Cluster, caplog: pytest.LogCaptureFixture
+) -> None:
+    p = Participant.create(cluster.broker.url, client_id="pia").start(timeout=5)
+    stopped = False
+    try:
+        assert wait_for(has_service(p, "echo"), 5)
+        first = p.open("echo")
+        held = first.submit({"hold": 1})
+        assert wait_for(lambda: cluster.service.seen({"hold": 1}), 5)
+        # Opening the same service again replaces the session: its waiting requests fail
+        # now instead of never; the ephemeral key (and pseudonym) is kept.
+        second = p.open("echo")
+        with pytest.raises(SessionError, match="opened again"):
+            held.result(0)
+        assert second.request({"n": 1}) == {"echo": {"n": 1}}
+        assert len({r.pseudonym for r in cluster.service.requests}) == 1
+
+        # A future its caller cancelled is skipped when the reply comes.
+        caplog.set_level(logging.ERROR, logger="ldm")
+        cancelled = second.submit({"n": 2})
+        cancelled.cancel()
+        assert wait_for(lambda: cluster.service.seen({"n": 2}), 5)
+        assert second.request({"n": 3}) == {"echo": {"n": 3}}  # the reply to n=2 came first
+        assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+        # Stopping the participant fails what still waits.
+        waiting = second.submit({"hold": 2})
+        assert wait_for(lambda: cluster.service.seen({"hold": 2}), 5)
+        p.stop()
+        stopped = True
+        with pytest.raises(ConnectError, match="stopped"):
+            waiting.result(0)
+    finally:
+        if not stopped:
+            p.stop()
+
+
+@pytest.mark.mosquitto
+def test_a_resent_request_gets_a_new_correlation_id_and_qos_1_holds_on_every_hop(
+    cluster: Cluster,
+) -> None:
+    p = Participant.create(cluster.broker.url, client_id="rex").start(timeout=5)
+    try:
+        assert wait_for(has_service(p, "echo"), 5)
+        session = p.open("echo")
+        held = session.submit({"hold": 1})
+        assert wait_for(lambda: cluster.service.seen({"hold": 1}), 5)
+        # A new core knows no session: the next input is answered nosession, the library
+        # re-opens and re-sends both, each under a new correlation id and pseudonym.
+        cluster.new_core()
+        assert wait_for(lambda: bool(cluster.core.services), 5)
+        assert session.request({"n": 1}, timeout=5) == {"echo": {"n": 1}}
+        assert held.result(5) == {"echo": {"hold": 1}}
+        first, again = cluster.service.seen({"hold": 1})
+        assert first.pseudonym != again.pseudonym
+        assert first.correlation_id != again.correlation_id
+
+        # Core data_qos=1 holds on every hop, though the provider was given no QoS.
+        data = [
+            m
+            for m in cluster.sniffer.snapshot()
+            if "/data/" in m.topic or "/echo/in/" in m.topic or "/echo/out/" in m.topic
+        ]
+        assert {m.topic.split("/")[3] for m in data} == {"in", "out", "up", "down"}
+        assert {m.qos for m in data} == {1}
+        c_ids = [Envelope.model_validate_json(m.payload).c for m in data if "/up/data/" in m.topic]
+        assert len(c_ids) == len(set(c_ids))  # no correlation id was sent twice
+    finally:
+        p.stop()

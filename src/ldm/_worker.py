@@ -2,6 +2,7 @@
 
 paho's network thread only puts events on the worker's queue; the worker handles them
 one at a time, so component state needs no locks, and runs ``tick`` between events.
+``stop_worker`` ends the thread before the next item, however long the backlog.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ import queue
 import threading
 import time
 from typing import Generic, TypeVar
+
+from ldm.transport import Connected
 
 __all__ = ["Worker"]
 
@@ -32,6 +35,8 @@ class Worker(Generic[_Item]):
         self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
         self._interval = interval
         self._limit = limit
+        self._stopping = threading.Event()
+        self._overflow_lock = threading.Lock()  # several paho threads may overflow at once
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def put(self, item: _Item) -> None:
@@ -45,12 +50,25 @@ class Worker(Generic[_Item]):
         self._queue.put(item)
         return True
 
+    def sink(self, item: _Item) -> None:
+        """A transport's sink (paho's thread): a reconnect is always queued; other items
+        past ``limit`` are dropped and reported to `overflowed`, one call at a time."""
+        if isinstance(item, Connected) or self.offer(item):
+            return
+        with self._overflow_lock:
+            self.overflowed()
+
+    def overflowed(self) -> None:
+        """One item was dropped by `sink` (count it); the default does nothing."""
+
     def start_worker(self) -> None:
         self._thread.start()
 
     def stop_worker(self, timeout: float = 5.0) -> None:
+        """Stop before the next item (the backlog is dropped) and wait for the thread."""
+        self._stopping.set()
         if self._thread.is_alive():
-            self._queue.put(_STOP)
+            self._queue.put(_STOP)  # wakes a worker waiting on an empty queue
             if threading.current_thread() is not self._thread:
                 self._thread.join(timeout)
 
@@ -67,7 +85,7 @@ class Worker(Generic[_Item]):
                 item = self._queue.get(timeout=max(0.0, next_tick - time.time()))
             except queue.Empty:
                 item = None
-            if item is _STOP:
+            if item is _STOP or self._stopping.is_set():
                 return
             try:
                 if item is not None:

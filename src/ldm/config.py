@@ -182,7 +182,10 @@ class ProviderConfig(_Settings):
     broker: BrokerSettings
     announce_interval: float = Field(default=10.0, gt=0)
     max_age: float = Field(default=2.0, gt=0)
-    data_qos: int = Field(default=0, ge=0, le=2)
+    data_qos: int | None = Field(default=None, ge=0, le=2)
+    """None (default): follow the core — input arrives at the QoS the core sends it with
+    (the subscription is QoS 2) and each reply goes back at its input's QoS, so
+    ``CoreConfig.data_qos`` holds on every hop. A number fixes both instead."""
     client_id: str | None = None
     max_queue: int = Field(default=10_000, ge=1)
     max_payload: int = Field(default=64 * 1024, ge=256)

@@ -162,7 +162,7 @@ class Core(Worker[Event]):
         self._limits: dict[str, _Limits] = {}
         self._published_list: list[ServiceDescription] | None = None
         self.cluster = Transport(
-            config.cluster, client_id=f"ldm-core-{self.name}", sink=self._sink, name=_CLUSTER
+            config.cluster, client_id=f"ldm-core-{self.name}", sink=self.sink, name=_CLUSTER
         )
         for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER):
             self.cluster.subscribe(flt, 1)
@@ -173,7 +173,7 @@ class Core(Worker[Event]):
             self.backbone = Transport(
                 config.backbone,
                 client_id=f"ldm-core-{self.name}-bb",
-                sink=self._sink,
+                sink=self.sink,
                 name=_BACKBONE,
                 will=Will(topics.bb_core(self.name), offline, qos=1, retain=True),
             )
@@ -213,9 +213,9 @@ class Core(Worker[Event]):
 
     def stop(self) -> None:
         """Withdraw this core's services from the backbone, clear the list, disconnect."""
-        self.stop_worker()
+        self.stop_worker()  # state is not touched by the worker after this
         if self.backbone is not None:
-            for name, svc in self._services.items():
+            for name, svc in list(self._services.items()):
                 if svc.origin == self.name:
                     self.backbone.publish_and_wait(topics.bb_announce(name), b"", retain=True)
             status = CoreStatus(name=self.name, online=False).model_dump_json().encode()
@@ -239,12 +239,8 @@ class Core(Worker[Event]):
     def session_count(self) -> int:
         return len(self._sessions)
 
-    def _sink(self, event: Event) -> None:
-        """paho's thread: queue the event; past ``max_queue`` drop messages, never connects."""
-        if isinstance(event, Connected):
-            self.put(event)
-        elif not self.offer(event):
-            self.stats.dropped_overload += 1
+    def overflowed(self) -> None:
+        self.stats.dropped_overload += 1
 
     # --- worker thread ----------------------------------------------------------------
 
@@ -395,20 +391,28 @@ class Core(Worker[Event]):
         """Answer a refused message on the client's session topic, within its notice bucket.
 
         The correlation id is ``c``, or read from ``payload`` only once the notice is
-        admitted, so a flood costs no parsing.
+        admitted and only if the payload is within ``max_payload``, so a flood costs no
+        parsing.
         """
+        if not self._admit_notice(client):
+            return
+        if c is None and len(payload) <= self.config.max_payload:
+            c = correlation(payload)
+        notice = SessionNotice(kind="rejected", service=service, c=c, reason=reason, error=error)
+        self._notify(client, notice)
+
+    def _answer(self, client: str, notice: SessionNotice) -> None:
+        """Send a ``refused`` or ``nosession`` notice within the client's notice bucket."""
+        if self._admit_notice(client):
+            self._notify(client, notice)
+
+    def _admit_notice(self, client: str) -> bool:
+        """Take a token from the client's notice bucket (10/s): False when it is empty."""
         limits = self._limits.get(client)
         if limits is not None and not limits.notices.take(time.time(), _NOTICE_RATE, _NOTICE_RATE):
             self.stats.notices_suppressed += 1
-            return
-        notice = SessionNotice(
-            kind="rejected",
-            service=service,
-            c=c if c is not None else correlation(payload),
-            reason=reason,
-            error=error,
-        )
-        self._notify(client, notice)
+            return False
+        return True
 
     # --- services ---------------------------------------------------------------------
 
@@ -446,8 +450,11 @@ class Core(Worker[Event]):
                 self._remove_service(service)
             return
         ann = Announcement.model_validate_json(payload)
-        if ann.origin is None or ann.origin == self.name or ann.service.name != service:
+        if ann.origin is None or ann.service.name != service:
+            self.stats.dropped_invalid += 1
             return
+        if ann.origin == self.name:
+            return  # our own announcement, back from the backbone
         current = self._services.get(service)
         if current is not None and current.origin == self.name:
             return  # a local provider wins over a remote one of the same name
@@ -493,7 +500,7 @@ class Core(Worker[Event]):
         if svc is None:
             self.stats.answered_refused += 1
             error = f"no service {req.service!r} in this cluster; list the services first"
-            self._notify(
+            self._answer(
                 client, SessionNotice(kind="refused", service=req.service, c=req.c, error=error)
             )
             return
@@ -538,13 +545,13 @@ class Core(Worker[Event]):
         session = self._sessions.get((client, service))
         if session is None or env.k is None:
             self.stats.answered_nosession += 1
-            self._notify(client, SessionNotice(kind="nosession", service=service, c=env.c))
+            self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
             return
         svc = self._services.get(service)
         if svc is None:
             self.stats.answered_refused += 1
             error = f"service {service!r} is gone"
-            self._notify(
+            self._answer(
                 client, SessionNotice(kind="refused", service=service, c=env.c, error=error)
             )
             return

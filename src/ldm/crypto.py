@@ -2,11 +2,14 @@
 
 X25519 agreement between the participant's ephemeral key and the service's static key,
 HKDF-SHA256 to two 32-byte keys (one per direction), ChaCha20-Poly1305 with a random
-96-bit nonce per message. The correlation id is authenticated as associated data.
+96-bit nonce per message. The correlation id and the send time are authenticated as
+associated data, so neither can be changed in transit (a replay must keep both, and the
+receiver drops an old ``t`` or a ``c`` it has seen).
 
     shared   = X25519(eph_private, service_public)
     up|down  = HKDF-SHA256(shared, salt=None, info="ldm/1" | eph_public | service_public, L=64)
-    d        = base64(nonce || ChaCha20Poly1305(key).encrypt(nonce, plaintext, c))
+    ad       = c | "|" | repr(t)
+    d        = base64(nonce || ChaCha20Poly1305(key).encrypt(nonce, plaintext, ad))
 
 Keys and plaintext are never logged.
 """
@@ -26,9 +29,18 @@ from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from ldm.errors import CryptoError
 
-__all__ = ["KeyPair", "SessionCipher"]
+__all__ = ["KeyPair", "SessionCipher", "aad"]
 
 _NONCE = 12
+
+
+def aad(c: str, t: float) -> str:
+    """The associated data of an envelope: its correlation id and its send time.
+
+    ``repr`` of a float is its shortest round-trip form, and JSON carries the same
+    value, so sender and receiver compute the same string.
+    """
+    return f"{c}|{t!r}"
 
 
 class KeyPair:

@@ -15,10 +15,11 @@ from __future__ import annotations
 import json
 import logging
 import secrets
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pydantic import ValidationError
@@ -26,7 +27,7 @@ from pydantic import ValidationError
 from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, ProviderConfig, build
-from ldm.crypto import KeyPair, SessionCipher
+from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import CryptoError, SessionError
 from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec
 from ldm.transport import Connected, Event, Message, Transport, Will
@@ -62,7 +63,40 @@ class ProviderStats:
     dropped_oversize: int = 0
     dropped_overload: int = 0
     """Input dropped on arrival because ``max_queue`` inputs were already waiting."""
+    dropped_replay: int = 0
+    """Input whose correlation id was already seen under its key within ``max_age``."""
     handler_errors: int = 0
+    """The handler raised, or its reply could not be encoded or sent."""
+
+
+_REPLAY_IDS = 1024  # correlation ids remembered per participant key (within max_age)
+
+
+@dataclass(slots=True)
+class _Peer:
+    """One participant key: its derived cipher and the correlation ids it used lately."""
+
+    cipher: SessionCipher
+    seen: dict[str, float] = field(default_factory=dict)
+
+    def replayed(self, c: str, t: float, oldest: float) -> bool:
+        """True if ``c`` came before; else remember it (ids older than ``oldest`` go)."""
+        if c in self.seen:
+            return True
+        if len(self.seen) >= _REPLAY_IDS:
+            self.seen = {k: v for k, v in self.seen.items() if v >= oldest}
+            while len(self.seen) >= _REPLAY_IDS:
+                del self.seen[next(iter(self.seen))]
+        self.seen[c] = t
+        return False
+
+
+@dataclass(slots=True)
+class _Reply:
+    """Where replies to one pseudonym go: its cipher and the QoS its input came with."""
+
+    cipher: SessionCipher
+    qos: int
 
 
 class Provider(Worker[Event]):
@@ -87,18 +121,21 @@ class Provider(Worker[Event]):
         self.name = spec.name
         self.stats = ProviderStats()
         self._handler = handler
-        self._ciphers: OrderedDict[str, SessionCipher] = OrderedDict()
-        self._by_pseudonym: OrderedDict[str, SessionCipher] = OrderedDict()
+        self._peers: OrderedDict[str, _Peer] = OrderedDict()
+        self._by_pseudonym: OrderedDict[str, _Reply] = OrderedDict()
+        self._count = threading.Lock()  # replies and their errors may come from any thread
         self._next_announce = 0.0
         client_id = config.client_id or f"ldm-svc-{spec.name}-{secrets.token_hex(3)}"
         self.transport = Transport(
             config.broker,
             client_id=client_id,
-            sink=self._sink,
+            sink=self.sink,
             name=f"provider-{spec.name}",
             will=Will(topics.announce(spec.name), b"", qos=1, retain=True),
         )
-        self.transport.subscribe(topics.provider_input_filter(spec.name), config.data_qos)
+        # Subscribed at QoS 2 unless set, input arrives at the QoS the core sent it with.
+        qos = 2 if config.data_qos is None else config.data_qos
+        self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
 
     @classmethod
     def create(
@@ -139,22 +176,18 @@ class Provider(Worker[Event]):
 
     def reply(self, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]) -> None:
         """Send a reply to a pseudonym seen recently (any thread)."""
-        cipher = self._by_pseudonym.get(pseudonym)
-        if cipher is None:
+        route = self._by_pseudonym.get(pseudonym)
+        if route is None:
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
-        self._send(cipher, pseudonym, correlation_id, payload)
+        self._send(route, pseudonym, correlation_id, payload)
 
     @property
     def cached_ciphers(self) -> int:
         """Derived session ciphers held now (at most ``cipher_cache``)."""
-        return len(self._ciphers)
+        return len(self._peers)
 
-    def _sink(self, event: Event) -> None:
-        """paho's thread: shed input past ``max_queue`` (counted); never drop a reconnect."""
-        if isinstance(event, Connected):
-            self.put(event)
-        elif not self.offer(event):
-            self.stats.dropped_overload += 1
+    def overflowed(self) -> None:
+        self.stats.dropped_overload += 1
 
     # --- worker thread ----------------------------------------------------------------
 
@@ -175,16 +208,16 @@ class Provider(Worker[Event]):
             topics.announce(self.name), ann.model_dump_json().encode(), qos=1, retain=True
         )
 
-    def _cipher(self, key: str) -> SessionCipher:
-        cipher = self._ciphers.get(key)
-        if cipher is None:
-            cipher = self.key.cipher(key, initiator=False)
-            self._ciphers[key] = cipher
-            if len(self._ciphers) > self.config.cipher_cache:
-                self._ciphers.popitem(last=False)
+    def _peer(self, key: str) -> _Peer:
+        peer = self._peers.get(key)
+        if peer is None:
+            peer = _Peer(self.key.cipher(key, initiator=False))
+            self._peers[key] = peer
+            if len(self._peers) > self.config.cipher_cache:
+                self._peers.popitem(last=False)
         else:
-            self._ciphers.move_to_end(key)
-        return cipher
+            self._peers.move_to_end(key)
+        return peer
 
     def _input(self, msg: Message) -> None:
         pseudonym = msg.topic.rsplit("/", 1)[-1]
@@ -195,18 +228,23 @@ class Provider(Worker[Event]):
             env = Envelope.model_validate_json(msg.payload)
             if env.k is None:
                 raise CryptoError("input without a key")
-            if time.time() - env.t > self.config.max_age:
+            now = time.time()
+            if now - env.t > self.config.max_age:
                 self.stats.dropped_stale += 1
                 return
-            cipher = self._cipher(env.k)
-            payload = json.loads(cipher.open(env.d, env.c))
+            peer = self._peer(env.k)
+            payload = json.loads(peer.cipher.open(env.d, aad(env.c, env.t)))
             if not isinstance(payload, dict):
                 raise CryptoError("payload is not a JSON object")
         except (ValidationError, CryptoError, ValueError, RecursionError):
             self.stats.dropped_invalid += 1
             return
+        if peer.replayed(env.c, env.t, now - self.config.max_age):
+            self.stats.dropped_replay += 1
+            return
         new = pseudonym not in self._by_pseudonym
-        self._by_pseudonym[pseudonym] = cipher
+        qos = msg.qos if self.config.data_qos is None else self.config.data_qos
+        route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos)
         self._by_pseudonym.move_to_end(pseudonym)
         if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
@@ -214,19 +252,21 @@ class Provider(Worker[Event]):
         request = Request(pseudonym, env.c, payload, env.t, new)
         try:
             answer = self._handler(request)
-        except Exception as exc:
-            self.stats.handler_errors += 1
-            log.error("%s: handler raised %s", self.name, type(exc).__name__)
-            return
-        if answer is not None:
-            self._send(cipher, pseudonym, env.c, answer)
+            if answer is not None:
+                self._send(route, pseudonym, env.c, answer)
+        except Exception:
+            with self._count:
+                self.stats.handler_errors += 1
+            log.error("%s: no reply to a request", self.name, exc_info=True)
 
     def _send(
-        self, cipher: SessionCipher, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
+        self, route: _Reply, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
     ) -> None:
-        plaintext = json.dumps(payload, separators=(",", ":")).encode()
-        env = Envelope(c=correlation_id, t=time.time(), d=cipher.seal(plaintext, correlation_id))
-        self.transport.publish(
-            topics.provider_reply(self.name, pseudonym), env.encode(), self.config.data_qos
+        plaintext = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
+        t = time.time()
+        env = Envelope(
+            c=correlation_id, t=t, d=route.cipher.seal(plaintext, aad(correlation_id, t))
         )
-        self.stats.replies += 1
+        self.transport.publish(topics.provider_reply(self.name, pseudonym), env.encode(), route.qos)
+        with self._count:
+            self.stats.replies += 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import time
 
 import pytest
 from hypothesis import given
@@ -154,3 +155,31 @@ def test_topic_names_reject_wildcards_and_separators(bad: str) -> None:
     with pytest.raises(ConfigError, match="cannot be used in a topic"):
         check_name(bad, "client id")
     assert check_name("car-17.a_b:c", "client id") == "car-17.a_b:c"
+
+
+def test_the_provider_drops_replays_and_altered_times() -> None:
+    from ldm import Provider, ServiceSpec
+    from ldm.crypto import aad
+    from ldm.transport import Message
+
+    service = KeyPair()
+    provider = Provider.create(
+        "mqtt://127.0.0.1:9", ServiceSpec(name="echo"), lambda r: {"ok": 1}, key=service
+    )
+    try:
+        eph = KeyPair()
+        cipher = eph.cipher(service.public, initiator=True)
+        t = time.time()
+        env = Envelope(c="c1", t=t, k=eph.public, d=cipher.seal(b"{}", aad("c1", t)))
+
+        def deliver(e: Envelope) -> None:
+            provider.handle(Message("ldm/svc/echo/in/p1", e.encode(), 1, False, "svc"))
+
+        deliver(env)
+        deliver(env)  # the same message again, within max_age
+        assert (provider.stats.requests, provider.stats.dropped_replay) == (1, 1)
+        deliver(env.model_copy(update={"t": t + 0.5}))  # a fresher time is not authentic
+        deliver(env.model_copy(update={"c": "c2"}))  # nor another correlation id
+        assert (provider.stats.requests, provider.stats.dropped_invalid) == (1, 2)
+    finally:
+        provider.transport.stop()

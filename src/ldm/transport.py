@@ -95,6 +95,8 @@ class Transport:
         self._started = False
         self.disconnects = 0
         """Connections lost so far (a participant uses it to explain a lost request)."""
+        self.dropped_topics = 0
+        """Messages dropped because their topic was not valid UTF-8 (paho's thread)."""
         client = mqtt.Client(
             CallbackAPIVersion.VERSION2,
             client_id=client_id,
@@ -122,11 +124,11 @@ class Transport:
         if reason.is_failure:
             log.warning("%s: broker refused the connection: %s", self.name, reason)
             return
-        with self._lock:
+        with self._lock:  # with `subscribe`: a filter is either in this list or sent there
             subscriptions = list(self._subscriptions.items())
+            self._connected.set()
         if subscriptions:
             client.subscribe(subscriptions)
-        self._connected.set()
         self._sink(Connected(self.name))
 
     def _on_disconnect(self, _c: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
@@ -137,7 +139,13 @@ class Transport:
             log.info("%s: disconnected (%s), reconnecting with back-off", self.name, reason)
 
     def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
-        self._sink(Message._from_paho(message, self.name))
+        try:
+            event = Message._from_paho(message, self.name)
+        except UnicodeDecodeError:  # paho decodes the topic lazily; it must not escape here
+            self.dropped_topics += 1
+            log.debug("%s: dropped a message whose topic is not UTF-8", self.name)
+            return
+        self._sink(event)
 
     # --- any thread ---------------------------------------------------------------------
 
@@ -149,7 +157,8 @@ class Transport:
         """Subscribe now if connected, and again after every reconnect."""
         with self._lock:
             self._subscriptions[topic_filter] = qos
-        if self.connected:
+            connected = self.connected
+        if connected:
             self._client.subscribe(topic_filter, qos)
 
     def start(self, timeout: float | None = None) -> None:
@@ -163,9 +172,6 @@ class Transport:
                 f"{self.name}: no connection to {self.settings.url} within {timeout} s; "
                 "is the broker running and are the URL and credentials right?"
             )
-
-    def wait_connected(self, timeout: float) -> bool:
-        return self._connected.wait(timeout)
 
     def publish(self, topic: str, payload: bytes, qos: int = 0, retain: bool = False) -> bool:
         """Queue a message for sending; never waits for the broker.

@@ -12,10 +12,12 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 import ldm
-from ldm import ConfigError, CoreConfig, CryptoError, KeyPair
+from ldm import ConfigError, CoreConfig, CryptoError, KeyPair, Provider, ServiceSpec
 from ldm.config import BrokerSettings, build
+from ldm.crypto import aad
 from ldm.messages import Envelope, SessionNotice
 from ldm.topics import check_name
+from ldm.transport import Event, Message, Transport
 
 
 def test_public_api_is_pinned() -> None:
@@ -158,10 +160,6 @@ def test_topic_names_reject_wildcards_and_separators(bad: str) -> None:
 
 
 def test_the_provider_drops_replays_and_altered_times() -> None:
-    from ldm import Provider, ServiceSpec
-    from ldm.crypto import aad
-    from ldm.transport import Message
-
     service = KeyPair()
     provider = Provider.create(
         "mqtt://127.0.0.1:9", ServiceSpec(name="echo"), lambda r: {"ok": 1}, key=service
@@ -183,3 +181,37 @@ def test_the_provider_drops_replays_and_altered_times() -> None:
         assert (provider.stats.requests, provider.stats.dropped_invalid) == (1, 2)
     finally:
         provider.transport.stop()
+
+
+def test_a_topic_that_is_not_utf8_is_counted_not_raised_on_pahos_thread() -> None:
+    import paho.mqtt.client as mqtt  # only to build the message paho would hand over
+
+    got: list[Event] = []
+    transport = Transport(BrokerSettings.of("mqtt://127.0.0.1:9"), client_id="t", sink=got.append)
+    bad = mqtt.MQTTMessage(topic=b"ldm/p/\xff/up/session")
+    good = mqtt.MQTTMessage(topic=b"ldm/services")
+    transport._on_message(transport._client, None, bad)
+    transport._on_message(transport._client, None, good)
+    assert transport.dropped_topics == 1
+    assert [e.topic for e in got if isinstance(e, Message)] == ["ldm/services"]
+
+
+def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
+    from ldm._worker import Worker
+    from ldm.testing import wait_for
+
+    class Slow(Worker[int]):
+        handled = 0
+
+        def handle(self, item: int) -> None:
+            time.sleep(0.005)
+            self.handled += 1
+
+    worker = Slow("slow", 1.0)
+    for i in range(1_000):
+        worker.put(i)
+    worker.start_worker()
+    assert wait_for(lambda: worker.handled > 0, 5)
+    worker.stop_worker()
+    assert not worker._thread.is_alive()
+    assert worker.handled < 100  # the stop did not wait for the backlog

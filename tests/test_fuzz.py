@@ -1,9 +1,11 @@
 """Property tests: every network decoder takes ten thousand generated payloads.
 
-The decoders are called in-process (no broker round trip), on a core, a provider and a
-LaaS worker that are built but never connected: their transports only queue. Promises
-checked for each payload: the decoder never raises, the message is accounted for in
-exactly one counter, and another participant's state is untouched.
+The decoders are called in-process (no broker round trip), on a core, a provider, a
+participant and a LaaS worker that are built but never connected: their transports only
+queue. Promises checked for each payload: the decoder never raises, the message is
+accounted for in exactly one counter (core, provider, worker), and another participant's
+state is untouched. Times are drawn per example around the clock of the moment, so fresh
+input really is forwarded.
 
 Each example is a batch of `BATCH` payloads, so 400 examples make 10,000 payloads per
 decoder in a few seconds (hypothesis' own cost is per example, not per payload).
@@ -25,8 +27,16 @@ from laas.errors import MapError, TraceError
 from laas.hdmap import HdMap
 from laas.service import LaasService
 from laas.trace import read_trace
-from ldm import Core, KeyPair, Provider, Request, ServiceSpec
-from ldm.messages import Announcement, Envelope, ServiceDescription, SessionRequest
+from ldm import Core, KeyPair, LdmError, Participant, Provider, Request, ServiceSpec
+from ldm.crypto import aad
+from ldm.messages import (
+    Announcement,
+    Envelope,
+    ServiceDescription,
+    SessionGrant,
+    SessionRequest,
+)
+from ldm.participant import Session
 from ldm.transport import Message
 
 BATCH = 25
@@ -76,17 +86,32 @@ odd_values = st.sampled_from(ODD) | st.integers() | st.floats() | st.text(max_si
 
 def mutations(valid: dict[str, Any]) -> st.SearchStrategy[dict[str, Any]]:
     """A valid object with fields dropped, replaced by odd values, or added."""
-    keys = sorted(valid)
+    return mutated(st.just(valid), sorted(valid))
+
+
+def mutated(
+    valid: st.SearchStrategy[dict[str, Any]], keys: list[str]
+) -> st.SearchStrategy[dict[str, Any]]:
+    """`mutations` of a valid object drawn per example (fresh times) with these keys."""
     return st.builds(
-        lambda drop, replace, extra: {
-            **{k: v for k, v in valid.items() if k not in drop},
+        lambda v, drop, replace, extra: {
+            **{k: x for k, x in v.items() if k not in drop},
             **replace,
             **extra,
         },
+        valid,
         st.sets(st.sampled_from(keys), max_size=3),
         st.dictionaries(st.sampled_from(keys), odd_values, max_size=3),
         st.dictionaries(st.sampled_from(["x", "user", "k2", "c "]), odd_values, max_size=1),
     )
+
+
+AGES = st.sampled_from([0.0, 0.0, 0.0, 0.5, 3.0, -40.0]) | st.floats(-100, 100)
+"""Seconds before now of a drawn ``t``: mostly fresh, some stale, some from the future."""
+
+
+def now_minus(age: float) -> float:
+    return time.time() - age
 
 
 def encoded(objects: st.SearchStrategy[Any]) -> st.SearchStrategy[bytes]:
@@ -109,19 +134,22 @@ def provider_key() -> KeyPair:
     return PROVIDER_KEY
 
 
+BOB_KEY = KeyPair()  # the fuzzed participant's current ephemeral key
+
+
 @pytest.fixture(scope="module")
 def core(provider_key: KeyPair) -> Iterator[Core]:
-    """A single-cluster core that knows `echo` and holds alice's session."""
+    """A single-cluster core that knows `echo` and holds alice's and bob's sessions."""
     c = Core.create("fuzz", UNREACHABLE, rate=1e9, burst=1e9, max_payload=4096)
     description = ServiceDescription(**SPEC.model_dump(), public_key=provider_key.public)
     announcement = Announcement(service=description, t=time.time() + 3600)
     c.handle(cluster("ldm/svc/echo/announce", announcement.model_dump_json().encode()))
-    request = SessionRequest(c="a1", service="echo", t=time.time())
-    c.handle(cluster("ldm/p/alice/up/session", request.model_dump_json().encode()))
-    alice_key = KeyPair()
-    env = Envelope(c="a2", t=time.time(), k=alice_key.public, d="AAAA")
-    c.handle(cluster("ldm/p/alice/up/data/echo", env.encode()))
-    assert c.stats.forwarded_in == 1
+    for who, key in (("alice", KeyPair()), ("bob", BOB_KEY)):
+        request = SessionRequest(c="a1", service="echo", t=time.time())
+        c.handle(cluster(f"ldm/p/{who}/up/session", request.model_dump_json().encode()))
+        env = Envelope(c="a2", t=time.time(), k=key.public, d="AAAA")
+        c.handle(cluster(f"ldm/p/{who}/up/data/echo", env.encode()))
+    assert c.stats.forwarded_in == 2
     yield c
     c.cluster.stop()
 
@@ -140,19 +168,27 @@ def core_outcomes(core: Core) -> int:
     s = core.stats
     return (
         s.forwarded_in
+        + s.forwarded_out
         + s.dropped_invalid
         + s.dropped_stale
+        + s.dropped_unroutable
         + s.rejected_rate
         + s.rejected_size
         + s.rejected_clock
+        + s.rejected_rekey
         + s.answered_nosession
         + s.answered_refused
         + s.granted
+        + s.control
     )
 
 
-def envelope_for(key: KeyPair) -> dict[str, Any]:
-    return {"c": "abc", "t": time.time(), "k": key.public, "d": "AAAA"}
+# bob's input: his session key (forwarded when fresh) or another (a key change refused)
+bob_envelopes = st.builds(
+    lambda k, age: {"c": "abc", "t": now_minus(age), "k": k, "d": "AAAA"},
+    st.sampled_from([BOB_KEY.public] * 3 + [KeyPair().public]),
+    AGES,
+)
 
 
 # --- the core: participant input and session requests ------------------------------
@@ -162,8 +198,8 @@ def envelope_for(key: KeyPair) -> dict[str, Any]:
 @given(
     batch=batches(
         st.tuples(
-            encoded(mutations(envelope_for(KeyPair()))),
-            st.sampled_from(["echo", "nope", "x" * 200, "ec%ho"]),
+            encoded(mutated(bob_envelopes, ["c", "t", "k", "d"])),
+            st.sampled_from(["echo", "echo", "nope", "x" * 200, "ec%ho"]),
         )
     )
 )
@@ -171,10 +207,19 @@ def test_core_participant_input_decoder(core: Core, batch: list[tuple[bytes, str
     before = alice_state(core)
     for payload, service in batch:
         outcomes = core_outcomes(core)
-        core.handle(cluster(f"ldm/p/mallory/up/data/{service}", payload))
+        core.handle(cluster(f"ldm/p/bob/up/data/{service}", payload))
         assert core_outcomes(core) == outcomes + 1
     assert alice_state(core) == before
-    assert not [s for s in core._sessions.values() if s.client == "mallory"]
+    bob = core._sessions[("bob", "echo")]
+    assert bob.current is not None and bob.current.key == BOB_KEY.public  # no churn
+
+
+def test_the_input_fuzz_reaches_forwarding(core: Core) -> None:
+    """Guards the fuzz above: fresh input of the session's key is forwarded."""
+    forwarded = core.stats.forwarded_in
+    env = {"c": "abc", "t": time.time(), "k": BOB_KEY.public, "d": "AAAA"}
+    core.handle(cluster("ldm/p/bob/up/data/echo", json.dumps(env).encode()))
+    assert core.stats.forwarded_in == forwarded + 1
 
 
 @FUZZ
@@ -194,7 +239,7 @@ def test_core_session_request_decoder(core: Core, batch: list[tuple[bytes, str]]
         assert core_outcomes(core) == outcomes + 1
     assert alice_state(core) == before
     assert all(s.service == "echo" for s in core._sessions.values())  # only known services
-    assert len(core._sessions) <= 4  # alice plus at most one per client
+    assert len(core._sessions) <= 5  # alice, bob, plus at most one per client
 
 
 @FUZZ
@@ -202,10 +247,25 @@ def test_core_session_request_decoder(core: Core, batch: list[tuple[bytes, str]]
     batch=batches(
         st.tuples(
             encoded(
-                mutations({"service": {"name": "ghost", "public_key": "A" * 43 + "="}, "t": 1.0})
+                mutated(
+                    st.builds(
+                        lambda age, origin: {
+                            "service": {"name": "ghost", "public_key": "A" * 43 + "="},
+                            "t": now_minus(age),
+                            "origin": origin,
+                        },
+                        AGES,
+                        st.sampled_from(["other", "fuzz", None]),
+                    ),
+                    ["service", "t", "origin"],
+                )
                 | mutations({"name": "other", "online": False})
-                | mutations({"c": "abc", "t": time.time() + 60, "d": "AAAA"})
-            ),
+                | mutated(
+                    st.builds(lambda age: {"c": "abc", "t": now_minus(age), "d": "AAAA"}, AGES),
+                    ["c", "t", "d"],
+                )
+            )
+            | st.just(b""),
             st.sampled_from(
                 [
                     ("backbone", "ldm/bb/announce/ghost"),
@@ -224,7 +284,9 @@ def test_core_backbone_and_announcement_decoders(
 ) -> None:
     before = alice_state(core)
     for payload, (source, topic) in batch:
+        outcomes = core_outcomes(core)
         core.handle(Message(topic, payload, 1, False, source))
+        assert core_outcomes(core) == outcomes + 1, (topic, payload)
     assert alice_state(core) == before
     assert "echo" in {s.name for s in core.services}  # nobody else's service is removed
     assert core._services["echo"].origin == "fuzz"
@@ -249,31 +311,151 @@ def provider(provider_key: KeyPair) -> Iterator[tuple[Provider, list[Request]]]:
 PLAINTEXTS = [b"{}", b'{"a": NaN}', b"[]", b"null", b"\xff", b"{" * 3000 + b"}" * 3000, b""]
 
 
-def sealed_envelopes(provider_key: KeyPair) -> list[dict[str, Any]]:
-    """One valid envelope per plaintext (key agreement is the slow part: done once)."""
-    key = KeyPair()
-    cipher = key.cipher(provider_key.public, initiator=True)
-    return [
-        {"c": "abc", "t": time.time() + 3600, "k": key.public, "d": cipher.seal(b, "abc")}
-        for b in PLAINTEXTS
-    ]
+PARTICIPANT_KEY = KeyPair()
+PARTICIPANT_CIPHER = PARTICIPANT_KEY.cipher(PROVIDER_KEY.public, initiator=True)
+
+
+def sealed(plaintext: bytes, c: str, age: float) -> dict[str, Any]:
+    """A valid input envelope, stamped now minus `age` (key agreement done once)."""
+    t = now_minus(age)
+    d = PARTICIPANT_CIPHER.seal(plaintext, aad(c, t))
+    return {"c": c, "t": t, "k": PARTICIPANT_KEY.public, "d": d}
+
+
+sealed_inputs = st.builds(
+    sealed,
+    st.sampled_from(PLAINTEXTS),
+    st.sampled_from(["abc", "abd"]) | st.from_regex(r"\A[a-z]{8}\Z"),
+    AGES,
+)
 
 
 @FUZZ
-@given(batch=batches(encoded(st.one_of([mutations(e) for e in sealed_envelopes(PROVIDER_KEY)]))))
+@given(batch=batches(encoded(mutated(sealed_inputs, ["c", "t", "k", "d"]))))
 def test_provider_input_decoder(
     provider: tuple[Provider, list[Request]], batch: list[bytes]
 ) -> None:
     p, seen = provider
     s = p.stats
+
+    def outcomes() -> int:
+        return (
+            s.requests + s.dropped_invalid + s.dropped_stale + s.dropped_oversize + s.dropped_replay
+        )
+
     for payload in batch:
-        outcomes = s.requests + s.dropped_invalid + s.dropped_stale + s.dropped_oversize
+        before = outcomes()
         handled = len(seen)
         p.handle(Message("ldm/svc/echo/in/pq", payload, 1, False, "provider"))
-        assert s.requests + s.dropped_invalid + s.dropped_stale + s.dropped_oversize == outcomes + 1
+        assert outcomes() == before + 1
         if len(seen) > handled:  # what reaches the handler is a decrypted JSON object
             assert isinstance(seen[-1].payload, dict)
     assert s.handler_errors == 0
+
+
+def test_the_provider_fuzz_reaches_the_handler(provider: tuple[Provider, list[Request]]) -> None:
+    """Guards the fuzz above: a fresh, well-sealed input is handled."""
+    p, seen = provider
+    handled = len(seen)
+    env = sealed(b'{"x": 1}', "guard1", 0.0)
+    p.handle(Message("ldm/svc/echo/in/pq", json.dumps(env).encode(), 1, False, "provider"))
+    assert len(seen) == handled + 1 and seen[-1].payload == {"x": 1}
+
+
+# --- the participant's decoders: service list, session notices, replies -------------
+
+
+@pytest.fixture(scope="module")
+def participant() -> Iterator[tuple[Participant, Session]]:
+    """A participant with an open `echo` session (its cipher is PARTICIPANT_KEY's).
+
+    Its test takes three batches per example: about 10,000 payloads for each of the
+    three decoders (service list, session notice, reply envelope)."""
+    p = Participant.create(UNREACHABLE, client_id="pat", data_qos=1)
+    grant = SessionGrant(
+        service=ServiceDescription(**SPEC.model_dump(), public_key=PROVIDER_KEY.public),
+        session="s1",
+        input_topic="ldm/p/pat/up/data/echo",
+        reply_topic="ldm/p/pat/down/data/echo",
+        rotation_period=120.0,
+        grace=5.0,
+        idle_timeout=30.0,
+        max_age=2.0,
+        data_qos=1,
+    )
+    session = Session(p, grant)
+    session._keys.pair = PARTICIPANT_KEY
+    session._keys.cipher = PARTICIPANT_KEY.cipher(PROVIDER_KEY.public, initiator=True)
+    p._sessions["echo"] = session
+    yield p, session
+    p.transport.stop()
+
+
+SERVICE = {"name": "echo", "public_key": PROVIDER_KEY.public, "version": "1"}
+REPLY_CIPHER = PROVIDER_KEY.cipher(PARTICIPANT_KEY.public, initiator=False)
+
+
+def sealed_reply(plaintext: bytes, c: str, age: float) -> dict[str, Any]:
+    t = now_minus(age)
+    return {"c": c, "t": t, "d": REPLY_CIPHER.seal(plaintext, aad(c, t))}
+
+
+participant_messages = st.one_of(
+    st.tuples(
+        st.just("ldm/services"),
+        encoded(
+            mutations({"t": 1.0, "services": [SERVICE]})
+            | mutations({"t": 1.0, "services": [{**SERVICE, "public_key": "B" * 43 + "="}]})
+        ),
+    ),
+    st.tuples(
+        st.just("ldm/p/pat/down/session"),
+        encoded(
+            mutated(
+                st.builds(
+                    lambda kind: {
+                        "kind": kind,
+                        "service": "echo",
+                        "c": "r1",
+                        "reason": "invalid",
+                        "error": "e",
+                    },
+                    st.sampled_from(["grant", "refused", "rotate", "nosession", "rejected", "x"]),
+                ),
+                ["kind", "service", "c", "reason", "error", "grant"],
+            )
+        ),
+    ),
+    st.tuples(
+        st.sampled_from(["ldm/p/pat/down/data/echo", "ldm/p/pat/down/data/other"]),
+        encoded(
+            mutated(
+                st.builds(sealed_reply, st.sampled_from(PLAINTEXTS), st.just("r1"), AGES),
+                ["c", "t", "d"],
+            )
+        ),
+    ),
+)
+
+
+@FUZZ
+@given(batch=st.lists(participant_messages, min_size=BATCH, max_size=BATCH))
+def test_participant_decoders(
+    participant: tuple[Participant, Session], batch: list[tuple[str, bytes]]
+) -> None:
+    p, session = participant
+    with session._lock:
+        session._pending.clear()
+    future = session.submit({"q": 1})  # one request waits for a reply, under id "r1"
+    with session._lock:
+        session._pending["r1"] = session._pending.pop(next(iter(session._pending)))
+    for topic, payload in batch:
+        p.handle(Message(topic, payload, 1, False, "pat"))  # never raises
+    assert all(isinstance(s, ServiceDescription) for s in p.services(timeout=0))
+    if future.done() and future.exception() is not None:
+        assert isinstance(future.exception(), LdmError)
+    elif future.done():
+        assert isinstance(future.result(), dict)
 
 
 # --- the LaaS worker's measurement decoder -----------------------------------------

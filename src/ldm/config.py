@@ -125,11 +125,14 @@ class CoreConfig(_Settings):
     older than ``max_age`` seconds (by its send timestamp) is dropped, never delivered late.
 
     Protection against misbehaving participants (each refusal is answered with a
-    ``rejected`` notice on the participant's session topic and counted in `CoreStats`):
-    a token bucket per participant client id admits ``rate`` messages per second on
-    average and ``burst`` at once; payloads over ``max_payload`` bytes are refused
-    before they are parsed; input stamped more than ``max_clock_skew`` seconds in the
-    future is refused (it would escape the ``max_age`` check).
+    ``rejected`` notice on the participant's session topic, at most 10 notices per
+    second and client, and counted in `CoreStats`): a token bucket per participant
+    client id admits ``rate`` messages per second on average and ``burst`` at once;
+    payloads over ``max_payload`` bytes are refused before they are parsed; input
+    stamped more than ``max_clock_skew`` seconds in the future is refused (it would
+    escape the ``max_age`` check); a session's new ephemeral key sooner than
+    ``rekey_interval`` after the last is refused. Stale input is dropped and counted
+    (``dropped_stale``), not answered.
     """
 
     name: str

@@ -12,9 +12,10 @@ backbone broker (every core connects there). It
 - routes ciphertext: participant input leaves the user cluster under the pseudonym
   only; replies come back by pseudonym and are mapped to the participant here;
 - guards the user cluster: per-participant token bucket (``rate``, ``burst``), payload
-  size limit, clock-skew check; every refusal of a participant's message is counted
-  and answered on its session topic (a ``rejected``, ``refused`` or ``nosession``
-  notice), and touches no other participant's state.
+  size limit, clock-skew check, at most one new key per ``rekey_interval``; every
+  refusal of a participant's message is counted and answered on its session topic (a
+  ``rejected``, ``refused`` or ``nosession`` notice, within 10 notices per second),
+  and touches no other participant's state. Stale input is counted and dropped.
 
 All state lives on the core's worker thread; paho's threads only enqueue events.
 """
@@ -143,6 +144,8 @@ class CoreStats:
     """Requests or input for a service the cluster does not offer (answered ``refused``)."""
     notices_suppressed: int = 0
     """Refusals not answered because the client's notice bucket was empty."""
+    control: int = 0
+    """Announcements, withdrawals and core statuses taken (valid, fresh)."""
     rotations: int = 0
     sessions_expired: int = 0
 
@@ -282,24 +285,29 @@ class Core(Worker[Event]):
                 if svc.origin == self.name:
                     self._announce_backbone(name, svc)
 
+    # Every message ends in exactly one counter: forwarded_*, dropped_*, rejected_*,
+    # answered_*, granted, or control (an announcement, withdrawal or core status taken).
+
     def _from_cluster(self, msg: Message, levels: list[str]) -> None:
         if levels[1] == "p" and len(levels) >= 5:
             self._from_participant(msg, levels)
-        elif levels[1] == "svc" and len(levels) >= 4:
-            service = levels[2]
-            if levels[3] == "announce":
-                self._local_announcement(service, msg.payload)
-            elif levels[3] == "out" and len(levels) == 5:
-                self._reply(service, levels[4], Envelope.model_validate_json(msg.payload))
+        elif levels[1] == "svc" and len(levels) == 4 and levels[3] == "announce":
+            self._local_announcement(levels[2], msg.payload)
+        elif levels[1] == "svc" and len(levels) == 5 and levels[3] == "out":
+            self._reply(levels[2], levels[4], Envelope.model_validate_json(msg.payload))
+        else:
+            self.stats.dropped_invalid += 1
 
     def _from_backbone(self, msg: Message, levels: list[str]) -> None:
         kind = levels[2] if len(levels) > 2 else ""
         if kind == "announce" and len(levels) == 4:
             self._remote_announcement(levels[3], msg.payload)
-        elif kind == "core" and len(levels) == 4 and msg.payload:
-            status = CoreStatus.model_validate_json(msg.payload)
-            if not status.online and status.name != self.name:
-                self._drop_origin(status.name)
+        elif kind == "core" and len(levels) == 4:
+            if msg.payload:
+                status = CoreStatus.model_validate_json(msg.payload)
+                if not status.online and status.name != self.name:
+                    self._drop_origin(status.name)
+            self.stats.control += 1
         elif kind == "in" and len(levels) == 7:
             # ldm/bb/in/{me}/{service}/{user_core}/{pseudonym}
             service, user_core, pseudonym = levels[4], levels[5], levels[6]
@@ -317,7 +325,11 @@ class Core(Worker[Event]):
             self.stats.forwarded_in += 1
         elif kind == "out" and len(levels) == 6:
             # ldm/bb/out/{me}/{service}/{pseudonym}
-            self._deliver(levels[4], levels[5], Envelope.model_validate_json(msg.payload))
+            env = Envelope.model_validate_json(msg.payload)
+            if not self._stale(env):
+                self._deliver(levels[4], levels[5], env)
+        else:
+            self.stats.dropped_invalid += 1
 
     # --- participant input: the user cluster's boundary ---------------------------------
 
@@ -421,6 +433,7 @@ class Core(Worker[Event]):
             svc = self._services.get(service)
             if svc is not None and svc.origin == self.name:
                 self._remove_service(service)
+            self.stats.control += 1
             return
         ann = Announcement.model_validate_json(payload)
         if ann.service.name != service:
@@ -428,7 +441,9 @@ class Core(Worker[Event]):
             return
         expires = ann.t + self.config.service_ttl
         if expires <= time.time():
-            return  # a stale retained announcement of a provider that is gone
+            self.stats.dropped_stale += 1  # a retained announcement of a provider that is gone
+            return
+        self.stats.control += 1
         svc = _Service(ann.service, self.name, expires)
         self._services[service] = svc
         self._announce_backbone(service, svc, ann.t)
@@ -448,19 +463,20 @@ class Core(Worker[Event]):
             svc = self._services.get(service)
             if svc is not None and svc.origin != self.name:
                 self._remove_service(service)
+            self.stats.control += 1
             return
         ann = Announcement.model_validate_json(payload)
         if ann.origin is None or ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        if ann.origin == self.name:
-            return  # our own announcement, back from the backbone
-        current = self._services.get(service)
-        if current is not None and current.origin == self.name:
-            return  # a local provider wins over a remote one of the same name
         expires = ann.t + self.config.service_ttl
         if expires <= time.time():
+            self.stats.dropped_stale += 1
             return
+        self.stats.control += 1
+        current = self._services.get(service)
+        if ann.origin == self.name or (current is not None and current.origin == self.name):
+            return  # our own, back from the backbone; or a local provider wins over a remote one
         self._services[service] = _Service(ann.service, ann.origin, expires)
         self._publish_list()
 
@@ -629,8 +645,7 @@ class Core(Worker[Event]):
         self.stats.forwarded_out += 1
 
     def _deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
-        if self._stale(env):
-            return
+        """A fresh reply (the caller checked its age) to the participant of a pseudonym."""
         session = self._pseudonyms.get(pseudonym)
         if session is None or session.service != service:
             self.stats.dropped_unroutable += 1

@@ -186,6 +186,8 @@ class Session:
             return
         try:
             payload = json.loads(pending.keys.cipher.open(env.d, aad(env.c, env.t)))
+            if not isinstance(payload, dict):
+                raise CryptoError("the reply is not a JSON object")
         except (CryptoError, ValueError, RecursionError) as exc:
             error = CryptoError(f"reply from {self.service.name!r}: {exc}")
             _settle(pending.future, error=error)

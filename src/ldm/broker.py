@@ -16,13 +16,22 @@ import logging
 import subprocess
 import sys
 import threading
-from typing import Any
+from typing import IO, Any
 
 from ldm.errors import ConnectError
 
-__all__ = ["BrokerProcess", "EmbeddedBroker"]
+__all__ = ["BrokerProcess", "EmbeddedBroker", "read_line"]
 
 _START_TIMEOUT = 10.0
+
+
+def read_line(stream: IO[str], timeout: float) -> str:
+    """One line from a child's pipe, or "" if none came within `timeout` seconds."""
+    line: list[str] = []
+    reader = threading.Thread(target=lambda: line.append(stream.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout)
+    return line[0] if line else ""
 
 
 class EmbeddedBroker:
@@ -135,7 +144,7 @@ class BrokerProcess:
         process = subprocess.Popen(
             [*command, "--port", str(self.port)], stdout=subprocess.PIPE, text=True
         )
-        line = process.stdout.readline() if process.stdout else ""
+        line = read_line(process.stdout, _START_TIMEOUT) if process.stdout else ""
         if not line.startswith("ldm broker listening on"):
             process.kill()
             process.wait(_START_TIMEOUT)

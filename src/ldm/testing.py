@@ -16,7 +16,8 @@ import socket
 import subprocess
 import tempfile
 import time
-from collections.abc import Mapping
+import weakref
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Literal, Protocol, Self
 
@@ -73,9 +74,8 @@ def mosquitto_required() -> bool:
     return os.environ.get("LDM_REQUIRE_MOSQUITTO", "") == "1"
 
 
-def wait_for(condition: object, timeout: float = 5.0, interval: float = 0.01) -> bool:
+def wait_for(condition: Callable[[], object], timeout: float = 5.0, interval: float = 0.01) -> bool:
     """Poll a zero-argument callable until it is truthy; False on timeout."""
-    assert callable(condition)
     deadline = time.monotonic() + timeout
     while True:
         if condition():
@@ -126,6 +126,8 @@ class MosquittoBroker:
         self.port = port or free_port()
         self.host = "127.0.0.1"
         self.directory = Path(tempfile.mkdtemp(prefix="ldm-mosquitto-"))
+        # Kept across stop() and start() (a restart needs the config); removed with the object.
+        self._cleanup = weakref.finalize(self, shutil.rmtree, self.directory, ignore_errors=True)
         self.directory.chmod(0o755)  # mosquitto started as root reads it as "mosquitto"
         self.config_file = self.directory / "mosquitto.conf"
         if acl is not None:
@@ -185,6 +187,7 @@ class MosquittoBroker:
 
     def __exit__(self, *_exc: object) -> None:
         self.stop()
+        self._cleanup()
 
 
 def start_broker(kind: BrokerKind) -> RunningBroker:

@@ -8,7 +8,7 @@ import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
 from ldm.config import BrokerSettings
-from ldm.messages import Envelope
+from ldm.messages import Envelope, SessionRequest
 from ldm.pytest_plugin import need_mosquitto
 from ldm.testing import MosquittoBroker, mosquitto_acl, wait_for
 from ldm.transport import Event, Message, Transport
@@ -34,6 +34,7 @@ def test_a_participant_cannot_read_or_write_another_participants_topics() -> Non
         mallory = Transport(BrokerSettings(url=broker.url), client_id="mallory", sink=seen.append)
         mallory.subscribe("ldm/p/alice/#", 1)  # accepted by the broker, never delivered
         mallory.subscribe("ldm/svc/#", 1)
+        mallory.subscribe("ldm/p/mallory/down/#", 1)  # its own: allowed
         mallory.start(timeout=5)
         try:
             assert wait_for(has_service(alice, "echo"), 5)
@@ -45,10 +46,20 @@ def test_a_participant_cannot_read_or_write_another_participants_topics() -> Non
             sealed = key.cipher(session.service.public_key, initiator=True).seal(b"{}", "m1")
             forged = Envelope(c="m1", t=time.time(), k=key.public, d=sealed)
             mallory.publish(session.grant.input_topic, forged.encode(), 1)
+            # Then a request on mallory's own topic: once the core has answered it, the
+            # forged input had its turn (MQTT keeps one client's messages in order).
+            own = SessionRequest(c="m2", service="echo", t=time.time()).model_dump_json()
+            mallory.publish("ldm/p/mallory/up/session", own.encode(), 1)
             assert session.request({"n": 2}) == {"echo": {"n": 2}}
-            time.sleep(0.3)
+
+            def answered() -> list[Message]:
+                return [e for e in list(seen) if isinstance(e, Message)]
+
+            assert wait_for(lambda: answered(), 5), "mallory's own request went unanswered"
             assert core.stats.forwarded_in == before + 1, "ACL let mallory write"
-            assert not [e for e in seen if isinstance(e, Message)], "ACL let mallory read"
+            assert {m.topic for m in answered()} == {"ldm/p/mallory/down/session"}, (
+                "ACL let mallory read"
+            )
             assert len(echo.requests) == 2
         finally:
             mallory.stop()

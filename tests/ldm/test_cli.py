@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 from ldm import Participant, Provider, ServiceSpec
+from ldm.broker import read_line
 from ldm.testing import wait_for
 
 from .deployment import has_service
@@ -30,12 +31,12 @@ def test_ldm_broker_and_ldm_core_serve_a_provider() -> None:
     core = None
     try:
         assert broker.stdout is not None
-        line = broker.stdout.readline()
+        line = read_line(broker.stdout, 10)
         assert line.startswith("ldm broker listening on mqtt://127.0.0.1:"), line
         url = line.split()[-1]
         core = spawn("core", "--name", "solo", "--cluster", url, "--service-ttl", "3")
         assert core.stdout is not None
-        assert core.stdout.readline().startswith("ldm core solo running on")
+        assert read_line(core.stdout, 10).startswith("ldm core solo running on")
         spec = ServiceSpec(name="upper")
         with (
             Provider.create(url, spec, lambda r: {"u": str(r.payload["s"]).upper()}) as _,

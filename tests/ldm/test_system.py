@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from ldm import Core, Participant, RequestTimeout, ServiceNotFound
+from ldm import Core, Participant, ServiceNotFound
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, ServiceList
 from ldm.testing import wait_for
@@ -140,7 +140,7 @@ def test_service_list_is_retained_qos1(deployment: Deployment, broker_kind) -> N
         msg = next(m for m in got if isinstance(m, Message))
         assert msg.retain
         # amqtt 0.12 re-delivers retained messages at QoS 0 whatever they were sent with.
-        assert msg.qos == (1 if broker_kind == "mosquitto" else msg.qos)
+        assert msg.qos == (1 if broker_kind == "mosquitto" else 0)
         assert [s.name for s in ServiceList.model_validate_json(msg.payload).services] == ["echo"]
     finally:
         watcher.stop()
@@ -189,8 +189,6 @@ def test_unknown_service_and_timeout_errors(deployment: Deployment) -> None:
     assert wait_for(lacks_service(p, "echo"), 5)
     with pytest.raises(ServiceNotFound, match=r"'echo' is gone|no service 'echo'"):
         session.request({"x": 1}, timeout=3)
-    with pytest.raises(RequestTimeout):
-        session.request({"x": 1}, timeout=0.0)
     # Once the core has forgotten the idle session, re-opening it is refused as well.
     assert wait_for(lambda: deployment.user_core.session_count == 0, 5)
     with pytest.raises(ServiceNotFound, match="no service 'echo'"):

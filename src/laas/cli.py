@@ -354,7 +354,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("LAAS_MAP", str(MAPS / "messe-hamburg.geojson")),
         help="GeoJSON lane map (env LAAS_MAP; default: the Hamburg test road)",
     )
-    p.add_argument("--data-qos", type=int, choices=(0, 1, 2), default=0, help="QoS of replies")
+    p.add_argument(
+        "--data-qos",
+        type=int,
+        choices=(0, 1, 2),
+        default=None,
+        help="QoS of the input subscription and replies (default: follow the core's)",
+    )
     p.add_argument(
         "--log-level",
         default=os.environ.get("LAAS_LOG_LEVEL", "warning"),

@@ -65,7 +65,7 @@ class LocalDeployment:
                     data_qos=self.data_qos,
                 ).start()
             self.provider, self.service = start_worker(
-                self.brokers["service"].url, self.hdmap, self.config, data_qos=self.data_qos
+                self.brokers["service"].url, self.hdmap, self.config
             )
         except BaseException:
             self.stop()

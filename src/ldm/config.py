@@ -107,6 +107,11 @@ class BrokerSettings(_Settings):
         return urlsplit(self.url).port or (8883 if self.tls else 1883)
 
 
+def _url_as_broker(value: object) -> object:
+    """A bare URL where broker settings are expected means {"url": URL}."""
+    return {"url": value} if isinstance(value, str) else value
+
+
 def _name(value: str) -> str:
     if not NAME_PATTERN.match(value):
         raise ValueError("use 1-128 characters from letters, digits and . _ : -")
@@ -153,10 +158,7 @@ class CoreConfig(_Settings):
 
     _check_name = field_validator("name")(_name)
 
-    @field_validator("cluster", "backbone", mode="before")
-    @classmethod
-    def _broker(cls, value: object) -> object:
-        return {"url": value} if isinstance(value, str) else value
+    _check_brokers = field_validator("cluster", "backbone", mode="before")(_url_as_broker)
 
     @property
     def rekey_interval(self) -> float:
@@ -196,10 +198,7 @@ class ProviderConfig(_Settings):
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
 
-    @field_validator("broker", mode="before")
-    @classmethod
-    def _broker(cls, value: object) -> object:
-        return {"url": value} if isinstance(value, str) else value
+    _check_broker = field_validator("broker", mode="before")(_url_as_broker)
 
 
 class ParticipantConfig(_Settings):
@@ -213,7 +212,4 @@ class ParticipantConfig(_Settings):
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
 
-    @field_validator("broker", mode="before")
-    @classmethod
-    def _broker(cls, value: object) -> object:
-        return {"url": value} if isinstance(value, str) else value
+    _check_broker = field_validator("broker", mode="before")(_url_as_broker)

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import secrets
 import time
 from dataclasses import dataclass, field
@@ -54,7 +53,7 @@ log = logging.getLogger(__name__)
 _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
-_TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_TOKEN = topics.TOKEN_PATTERN
 _NOTICE_RATE = 10.0  # rejection notices per second and client, so refusing costs little
 
 

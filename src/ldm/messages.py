@@ -11,6 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ldm.topics import NAME_PATTERN, TOKEN_PATTERN
+
 __all__ = [
     "Announcement",
     "CoreStatus",
@@ -24,8 +26,8 @@ __all__ = [
     "SessionRequest",
 ]
 
-_NAME = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,127}$"
-_TOKEN = r"^[A-Za-z0-9_-]{1,64}$"
+_NAME = NAME_PATTERN.pattern
+_TOKEN = TOKEN_PATTERN.pattern
 _B64 = r"^[A-Za-z0-9+/=]*$"
 
 

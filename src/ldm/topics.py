@@ -28,11 +28,16 @@ from ldm.errors import ConfigError
 
 __all__ = [
     "NAME_PATTERN",
+    "SERVICES",
+    "TOKEN_PATTERN",
     "check_name",
 ]
 
 NAME_PATTERN: Final = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,127}$")
 """Client ids, service names, core names and pseudonyms: one safe topic level each."""
+
+TOKEN_PATTERN: Final = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+"""Correlation ids: random tokens chosen by the sender."""
 
 SERVICES: Final = "ldm/services"
 

@@ -60,3 +60,13 @@ def fix_on(
         heading=(segment.heading(s) + heading_offset) % 360.0,
         speed=speed,
     )
+
+
+class Clock:
+    """A clock a test sets by hand (seconds); call it to read it."""
+
+    def __init__(self, now: float = 1_700_000_000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now

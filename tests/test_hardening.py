@@ -43,6 +43,7 @@ from ldm.pytest_plugin import need_mosquitto
 from ldm.testing import MosquittoBroker, free_port, wait_for
 from ldm.transport import Event, Message, Transport
 
+from .helpers import Clock
 from .ldm.deployment import ECHO, EchoService, has_service
 from .ldm.test_tls import make_certificates
 
@@ -415,14 +416,6 @@ def test_the_provider_sheds_load_past_its_queue_and_counts_it() -> None:
 
 
 # --- bounded memory with many idle pseudonyms ---------------------------------------
-
-
-class Clock:
-    def __init__(self, now: float) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
 
 
 IDLE = 1_000  # pseudonyms: enough to show that memory does not grow with them

@@ -10,16 +10,10 @@ from laas.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig
 from ldm import Request
 
+from .helpers import Clock
+
 NOW = 1_700_000_000.0
 FIX = {"latitude": 53.55876, "longitude": 9.97610, "altitude": 10.0, "heading": 30.8, "speed": 5.4}
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = NOW
-
-    def __call__(self) -> float:
-        return self.now
 
 
 @pytest.fixture(scope="module")

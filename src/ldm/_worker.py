@@ -53,10 +53,11 @@ class Worker(Generic[_Item]):
     def sink(self, item: _Item) -> None:
         """A transport's sink (paho's thread): a reconnect is always queued; other items
         past ``limit`` are dropped and reported to `overflowed`, one call at a time."""
-        if isinstance(item, Connected) or self.offer(item):
-            return
-        with self._overflow_lock:
-            self.overflowed()
+        if isinstance(item, Connected):
+            self.put(item)
+        elif not self.offer(item):
+            with self._overflow_lock:
+                self.overflowed()
 
     def overflowed(self) -> None:
         """One item was dropped by `sink` (count it); the default does nothing."""

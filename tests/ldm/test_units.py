@@ -215,3 +215,32 @@ def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
     worker.stop_worker()
     assert not worker._thread.is_alive()
     assert worker.handled < 100  # the stop did not wait for the backlog
+
+
+def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> None:
+    from ldm._worker import Worker
+    from ldm.transport import Connected, Event, Message
+
+    class Recorder(Worker[Event]):
+        dropped = 0
+        seen: list[Event]
+
+        def handle(self, item: Event) -> None:
+            self.seen.append(item)
+
+        def overflowed(self) -> None:
+            self.dropped += 1
+
+    worker = Recorder("full", 1.0, limit=1)
+    worker.seen = []
+    message = Message(topic="t", payload=b"x", qos=0, retain=False, source="broker")
+    worker.sink(message)
+    worker.sink(message)  # past the limit: dropped and counted
+    worker.sink(Connected("broker"))  # a reconnect is never dropped
+    worker.start_worker()
+    from ldm.testing import wait_for
+
+    assert wait_for(lambda: len(worker.seen) == 2, 5)
+    worker.stop_worker()
+    assert worker.dropped == 1
+    assert isinstance(worker.seen[-1], Connected)

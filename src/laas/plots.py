@@ -62,7 +62,9 @@ def plot_traces(hdmap: HdMap, trace: Trace, path: Path, measured: bool = True) -
     ax.set_xlabel(f"easting - {e0:.0f} m")
     ax.set_ylabel(f"northing - {n0:.0f} m")
     ax.set_title(
-        f"{trace.scenario.name}: ground truth on the lanes (grey driving, tan parking, red bicycle)"
+        f"{trace.scenario.name}: true traces on the lanes\n"
+        "(lanes: grey driving, tan parking, red bicycle, green sidewalk)",
+        fontsize=10,
     )
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()

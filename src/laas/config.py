@@ -53,11 +53,18 @@ class EngineConfig(BaseModel):
         default=0.25, description="spread of a user's lateral position about its lane centre, m"
     )
     lane_change_rate: NonNegative = Field(
-        default=0.1,
+        default=0.2,
         description=(
             "lane changes per second, to each side, that heading does not announce; it is "
             "also how fast an old lane decision fades, since successive filtered fixes "
             "share their errors and are weaker evidence than they look"
+        ),
+    )
+    filtered_inflation: Annotated[float, Field(ge=1.0, allow_inf_nan=False)] = Field(
+        default=2.0,
+        description=(
+            "default mode: how much the Kalman-filtered lateral variance is inflated in the "
+            "lane likelihood, since successive filtered fixes share their errors"
         ),
     )
     max_lane_change: Probability = Field(

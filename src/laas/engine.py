@@ -349,8 +349,9 @@ class Engine:
             for v in users[1:]
         ]
         # Successive filtered fixes share their errors, so each is weaker evidence of the
-        # lane than its own covariance says: s_i^2 = s_lane^2 + k n'P_i n.
-        sigma = np.sqrt([c.sigma_lane**2 + c.filtered_inflation * p.lateral_var for p in pl])
+        # lane than its own covariance says: s_i^2 = s_lane^2 + k n'P_i n (raw fixes: k = 1).
+        k = c.filtered_inflation if c.kalman else 1.0
+        sigma = np.sqrt([c.sigma_lane**2 + k * p.lateral_var for p in pl])
         with np.errstate(divide="ignore"):
             log_prior = np.log(np.array(beliefs))
         result = best_assignment(d, np.array([p.offsets for p in pl]), sigma, log_prior, 0.0, tau)

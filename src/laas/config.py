@@ -63,8 +63,9 @@ class EngineConfig(BaseModel):
     filtered_inflation: Annotated[float, Field(ge=1.0, allow_inf_nan=False)] = Field(
         default=2.0,
         description=(
-            "default mode: how much the Kalman-filtered lateral variance is inflated in the "
-            "lane likelihood, since successive filtered fixes share their errors"
+            "default mode, with the Kalman filter on: how much the filtered lateral variance "
+            "is inflated in the lane likelihood, since successive filtered fixes share "
+            "their errors"
         ),
     )
     max_lane_change: Probability = Field(

@@ -43,7 +43,7 @@ from laas.errors import ConfigError
 from laas.evaluate import score
 from laas.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.participants import run_participants
+from laas.participants import run_participants, wait_for_service
 from laas.scenario import (
     EPOCH_MS,
     ErrorModel,
@@ -324,12 +324,7 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
         for u in users:
             participants[u] = Participant.create(shard.url, client_id=f"bench-{shard.tag}-{u}")
             participants[u].start()
-        first = participants[users[0]]
-        deadline = time.monotonic() + 30.0
-        while not any(s.name == SERVICE_NAME for s in first.services(timeout=0.5)):
-            if time.monotonic() > deadline:
-                raise TimeoutError("the laas service did not appear within 30 s")
-            time.sleep(0.1)
+        wait_for_service(participants[users[0]], 30.0)
         sessions: dict[str, Session] = {u: p.open(SERVICE_NAME) for u, p in participants.items()}
     except Exception as exc:
         results.put(("failed", shard.index, f"{type(exc).__name__}: {exc}"))

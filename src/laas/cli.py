@@ -121,7 +121,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
-    from laas.engine import Engine
+    from laas.evaluate import answer_trace
     from laas.plots import plot_lanes_over_time, plot_traces
     from laas.scenario import get_scenario, simulate
 
@@ -132,8 +132,8 @@ def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) 
     out.mkdir(parents=True, exist_ok=True)
     paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
     for mode in ("paper", "default"):
-        engine = Engine(hdmap, EngineConfig(mode=mode, sigma_pos=sigma_pos, sigma_vel=sigma_vel))
-        answers = [engine.process(f.user, f.measurement) for f in trace.fixes]
+        config = EngineConfig(mode=mode, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
+        answers = answer_trace(hdmap, trace, config)
         paths.append(plot_lanes_over_time(trace, answers, out / f"{name}-lanes-{mode}.png"))
     for p in paths:
         print(f"wrote {p}")

@@ -13,8 +13,7 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.deployment import BrokerChoice, LocalDeployment
-from laas.engine import Engine
-from laas.evaluate import RunResult, score
+from laas.evaluate import RunResult, answer_trace, score
 from laas.hdmap import HdMap
 from laas.participants import run_participants
 from laas.plots import plot_lanes_over_time, plot_traces
@@ -70,8 +69,7 @@ def run_demo(
     rows = [_row("received over MQTT (default mode)", score(hdmap, trace, live.answers))]
     offline = {}
     for mode in ("default", "paper"):
-        engine = Engine(hdmap, config.model_copy(update={"mode": mode}))
-        offline[mode] = [engine.process(f.user, f.measurement) for f in trace.fixes]
+        offline[mode] = answer_trace(hdmap, trace, config.model_copy(update={"mode": mode}))
         rows.append(_row(f"offline replay, {mode} mode", score(hdmap, trace, offline[mode])))
     raw = score(hdmap, trace, offline["default"])  # its raw_aed column: the fixes as sent
     lat = sorted(live.latencies)

@@ -38,6 +38,7 @@ __all__ = [
     "TABLE_I_CONFIGS",
     "Row",
     "RunResult",
+    "answer_trace",
     "evaluate",
     "format_table",
     "print_progress",
@@ -107,10 +108,17 @@ class Row:
         return asdict(self)
 
 
+def answer_trace(
+    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None
+) -> list[CorrectedPosition | None]:
+    """A fresh engine's answer to every fix of a simulated trace, in order."""
+    engine = Engine(hdmap, config)
+    return [engine.process(f.user, f.measurement) for f in trace.fixes]
+
+
 def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
     """Feed a simulated trace to a fresh engine and score its answers."""
-    engine = Engine(hdmap, config)
-    return score(hdmap, trace, [engine.process(f.user, f.measurement) for f in trace.fixes])
+    return score(hdmap, trace, answer_trace(hdmap, trace, config))
 
 
 def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:

@@ -104,12 +104,7 @@ class UtmProjection:
 
     def to_utm_array(self, lon: npt.ArrayLike, lat: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Vectorised :meth:`to_utm`: shape (n, 2) of (easting, northing)."""
-        lon_a = np.asarray(lon, dtype=np.float64).reshape(-1)
-        lat_a = np.asarray(lat, dtype=np.float64).reshape(-1)
-        if lon_a.shape != lat_a.shape:
-            raise ValueError(f"lon and lat differ in length: {lon_a.size} != {lat_a.size}")
-        x, y = _transformers(self.epsg)[0].transform(lon_a, lat_a)
-        return np.column_stack((np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)))
+        return _transform_array(_transformers(self.epsg)[0], lon, lat, ("lon", "lat"))
 
     def to_wgs84(self, x: float, y: float) -> tuple[float, float]:
         """(lon, lat) in degrees."""
@@ -118,14 +113,7 @@ class UtmProjection:
 
     def to_wgs84_array(self, x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Vectorised :meth:`to_wgs84`: shape (n, 2) of (lon, lat)."""
-        x_a = np.asarray(x, dtype=np.float64).reshape(-1)
-        y_a = np.asarray(y, dtype=np.float64).reshape(-1)
-        if x_a.shape != y_a.shape:
-            raise ValueError(f"x and y differ in length: {x_a.size} != {y_a.size}")
-        lon, lat = _transformers(self.epsg)[1].transform(x_a, y_a)
-        return np.column_stack(
-            (np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64))
-        )
+        return _transform_array(_transformers(self.epsg)[1], x, y, ("x", "y"))
 
     def convergence(self, lon: float, lat: float) -> float:
         """Meridian convergence in degrees: true bearing = grid bearing + convergence.
@@ -134,3 +122,17 @@ class UtmProjection:
         """
         factors = _proj(self.epsg).get_factors(lon, lat)
         return float(factors.meridian_convergence)
+
+
+def _transform_array(
+    transformer: Any, a: npt.ArrayLike, b: npt.ArrayLike, names: tuple[str, str]
+) -> npt.NDArray[np.float64]:
+    """Run a pyproj transformer over two equally long coordinate arrays: shape (n, 2)."""
+    a_arr = np.asarray(a, dtype=np.float64).reshape(-1)
+    b_arr = np.asarray(b, dtype=np.float64).reshape(-1)
+    if a_arr.shape != b_arr.shape:
+        raise ValueError(
+            f"{names[0]} and {names[1]} differ in length: {a_arr.size} != {b_arr.size}"
+        )
+    u, v = transformer.transform(a_arr, b_arr)
+    return np.column_stack((np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)))

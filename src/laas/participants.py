@@ -24,7 +24,7 @@ from laas.scenario import Trace
 from laas.service import SERVICE_NAME
 from ldm import BrokerSettings, Participant, Session
 
-__all__ = ["LiveRun", "accounts", "run_participants"]
+__all__ = ["LiveRun", "accounts", "run_participants", "wait_for_service"]
 
 
 @dataclass
@@ -40,7 +40,8 @@ class LiveRun:
         return sum(a is not None for a in self.answers)
 
 
-def _wait_for_service(participant: Participant, timeout: float) -> None:
+def wait_for_service(participant: Participant, timeout: float) -> None:
+    """Wait until the cluster's service list names the laas service; TimeoutError if not."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if any(s.name == SERVICE_NAME for s in participant.services(timeout=0.5)):
@@ -95,7 +96,7 @@ def run_participants(
     try:
         for p in participants.values():
             p.start()
-        _wait_for_service(next(iter(participants.values())), discovery_timeout)
+        wait_for_service(next(iter(participants.values())), discovery_timeout)
         for u, p in participants.items():
             sessions[u] = p.open(SERVICE_NAME)
         t0_fix = trace.fixes[0].measurement.timestamp

@@ -31,7 +31,6 @@ goes first), so neither a participant's clock nor a flood of pseudonyms grows it
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
@@ -136,6 +135,19 @@ class LaasService:
         self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
         self._map = hdmap
+        # The service area in degrees, computed once: the map's UTM bounds grown by
+        # max_distance, so the per-fix check needs no projection (the engine does that).
+        x0, y0, x1, y1 = hdmap.bounds
+        d = self.config.max_distance
+        corners = [
+            hdmap.projection.to_wgs84(x, y) for x in (x0 - d, x1 + d) for y in (y0 - d, y1 + d)
+        ]
+        self._area = (
+            min(c[0] for c in corners),
+            min(c[1] for c in corners),
+            max(c[0] for c in corners),
+            max(c[1] for c in corners),
+        )
         self._clock = clock
         self._wall = wall_clock
         self._next_expiry = clock() + self.config.expire_every
@@ -234,17 +246,11 @@ class LaasService:
 
     def _check_area(self, m: GpsMeasurement) -> dict[str, Any] | None:
         """Refuse a fix outside the map's area (plus ``max_distance``)."""
-        x, y = self._map.projection.to_utm(m.longitude, m.latitude)
-        x0, y0, x1, y1 = self._map.bounds
-        d = self.config.max_distance
-        if (
-            math.isfinite(x)
-            and math.isfinite(y)
-            and x0 - d <= x <= x1 + d
-            and y0 - d <= y <= y1 + d
-        ):
+        lon0, lat0, lon1, lat1 = self._area
+        if lon0 <= m.longitude <= lon1 and lat0 <= m.latitude <= lat1:
             return None
         self.stats.outside += 1
+        d = self.config.max_distance
         problem = f"more than {d / 1000:g} km outside the service area of map {self._map.source}"
         return _error(
             "outside",

@@ -434,6 +434,13 @@ class LocalCompose:
             for in_image, host in mounts(service).items():
                 if host == ROOT / "deploy" / "security" / "passwd":
                     host = self.passwd  # generated for this run, as the deployment does
+                elif host.is_file():
+                    # The same file, copied where mosquitto (which drops root to user
+                    # "mosquitto") can read it whatever the checkout's permissions.
+                    copy = self.workdir / f"{name}-{host.name}"
+                    shutil.copyfile(host, copy)
+                    copy.chmod(0o644)
+                    host = copy
                 local = re.sub(rf"(?m)^(\w+) {re.escape(in_image)}\s*$", rf"\1 {host}", local)
             path = self.workdir / f"{name}.conf"
             path.write_text(local)

@@ -20,12 +20,13 @@ def deployment(broker_factory):
     d.close()
 
 
-def works_again(session: Session, within: float = 10.0) -> float:
-    """Retry a request until it succeeds; returns how long that took."""
+def works_again(session: Session, within: float = 20.0) -> float:
+    """Retry a request until it succeeds; returns how long that took. The bound is
+    generous: the embedded broker in this process is slow to settle on a loaded machine."""
     start = time.monotonic()
     while True:
         try:
-            assert session.request({"ping": 1}, timeout=0.5) == {"echo": {"ping": 1}}
+            assert session.request({"ping": 1}, timeout=1.0) == {"echo": {"ping": 1}}
             return time.monotonic() - start
         except LdmError:
             if time.monotonic() - start > within:

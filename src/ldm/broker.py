@@ -16,6 +16,7 @@ import logging
 import subprocess
 import sys
 import threading
+import time
 from typing import IO, Any
 
 from ldm.errors import ConnectError
@@ -23,6 +24,7 @@ from ldm.errors import ConnectError
 __all__ = ["BrokerProcess", "EmbeddedBroker", "read_line"]
 
 _START_TIMEOUT = 10.0
+_REBIND_TIMEOUT = 5.0  # s: how long a restart waits for its old port to be released
 
 
 def read_line(stream: IO[str], timeout: float) -> str:
@@ -53,11 +55,22 @@ class EmbeddedBroker:
         return self._broker is not None
 
     def start(self) -> EmbeddedBroker:
-        """Start listening; after a stop, starts again on the same port."""
+        """Start listening; after a stop, starts again on the same port (waiting up to
+        `_REBIND_TIMEOUT` s for the old listening socket to be released)."""
         if self.running:
             return self
         for name in ("amqtt", "transitions"):
             logging.getLogger(name).setLevel(logging.WARNING)
+        deadline = time.monotonic() + _REBIND_TIMEOUT
+        while True:
+            try:
+                return self._start_once()
+            except ConnectError as exc:
+                if self.port == 0 or "in use" not in str(exc) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+
+    def _start_once(self) -> EmbeddedBroker:
         ready = threading.Event()
         failure: list[BaseException] = []
         loop = asyncio.new_event_loop()

@@ -133,3 +133,24 @@ def test_free_port_is_bindable() -> None:
     port = free_port()
     with socket.socket() as s:
         s.bind(("127.0.0.1", port))
+
+
+def test_embedded_restart_waits_for_its_port_to_be_released() -> None:
+    import socket
+    import threading
+
+    from ldm import EmbeddedBroker
+
+    broker = EmbeddedBroker().start()
+    port = broker.port
+    broker.stop()
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", port))  # someone still holds the port for a moment
+    holder.listen()
+    threading.Timer(0.5, holder.close).start()
+    try:
+        broker.start()
+        assert broker.port == port
+    finally:
+        broker.stop()
+        holder.close()

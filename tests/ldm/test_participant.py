@@ -14,6 +14,7 @@ from ldm import ConnectError, Core, Participant, Provider, Request, SessionError
 from ldm.messages import Envelope
 from ldm.pytest_plugin import need_mosquitto
 from ldm.testing import MosquittoBroker, wait_for
+from ldm.transport import Message
 
 from .deployment import ECHO, Sniffer, has_service
 
@@ -128,12 +129,17 @@ def test_a_resent_request_gets_a_new_correlation_id_and_qos_1_holds_on_every_hop
         assert first.correlation_id != again.correlation_id
 
         # Core data_qos=1 holds on every hop, though the provider was given no QoS.
-        data = [
-            m
-            for m in cluster.sniffer.snapshot()
-            if "/data/" in m.topic or "/echo/in/" in m.topic or "/echo/out/" in m.topic
-        ]
-        assert {m.topic.split("/")[3] for m in data} == {"in", "out", "up", "down"}
+        def sniffed() -> list[Message]:
+            return [
+                m
+                for m in cluster.sniffer.snapshot()
+                if "/data/" in m.topic or "/echo/in/" in m.topic or "/echo/out/" in m.topic
+            ]
+
+        # The sniffer is another client: its copy of the last reply may trail the reply.
+        hops = {"in", "out", "up", "down"}
+        assert wait_for(lambda: {m.topic.split("/")[3] for m in sniffed()} == hops, 5)
+        data = sniffed()
         assert {m.qos for m in data} == {1}
         c_ids = [Envelope.model_validate_json(m.payload).c for m in data if "/up/data/" in m.topic]
         assert len(c_ids) == len(set(c_ids))  # no correlation id was sent twice

@@ -32,7 +32,7 @@ import pytest
 import yaml  # type: ignore[import-untyped]
 
 from ldm.pytest_plugin import need_mosquitto
-from ldm.testing import find_mosquitto, free_port
+from ldm.brokers import find_mosquitto, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"

@@ -40,7 +40,7 @@ from ldm.messages import (
     SessionRequest,
 )
 from ldm.pytest_plugin import need_mosquitto
-from ldm.testing import MosquittoBroker, free_port, wait_for
+from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.transport import Event, Message, Transport
 
 from .helpers import Clock

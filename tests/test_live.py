@@ -11,7 +11,7 @@ from laas.hdmap import HdMap
 from laas.participants import run_participants
 from laas.scenario import hamburg_scenario, simulate
 from ldm.pytest_plugin import broker_kind
-from ldm.testing import BrokerKind
+from ldm.brokers import BrokerKind
 
 __all__ = ["broker_kind"]
 

@@ -55,7 +55,7 @@ from laas.scenario import (
 )
 from laas.service import SERVICE_NAME, start_worker
 from ldm import BrokerSettings, Core, Participant, Session
-from ldm.testing import RunningBroker, find_mosquitto, start_broker
+from ldm.brokers import RunningBroker, find_mosquitto, start_broker
 from ldm.transport import Event, Message, Transport
 
 __all__ = [

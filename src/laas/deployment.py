@@ -16,7 +16,7 @@ from laas.config import EngineConfig
 from laas.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
-from ldm.testing import BrokerKind, RunningBroker, find_mosquitto, start_broker
+from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
 
 __all__ = ["BrokerChoice", "LocalDeployment"]
 

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from ldm.testing import BrokerKind, RunningBroker, find_mosquitto, mosquitto_required, start_broker
+from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, mosquitto_required, start_broker
 
 __all__ = ["broker_factory", "broker_kind", "mqtt_broker", "need_mosquitto"]
 

@@ -9,7 +9,7 @@ from typing import Any
 
 from ldm import Core, Participant, Provider, Request, ServiceSpec
 from ldm.config import BrokerSettings
-from ldm.testing import RunningBroker, wait_for
+from ldm.brokers import RunningBroker, wait_for
 from ldm.transport import Event, Message, Transport
 
 FAST = {

@@ -13,7 +13,7 @@ import pytest
 
 from ldm import BrokerProcess, EmbeddedBroker
 from ldm.config import BrokerSettings
-from ldm.testing import MosquittoBroker, free_port, wait_for
+from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.transport import Connected, Event, Message, Transport
 
 

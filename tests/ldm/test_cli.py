@@ -9,7 +9,7 @@ import sys
 
 from ldm import Participant, Provider, ServiceSpec
 from ldm.broker import read_line
-from ldm.testing import wait_for
+from ldm.brokers import wait_for
 
 from .deployment import has_service
 

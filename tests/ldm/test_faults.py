@@ -8,7 +8,7 @@ import pytest
 
 from ldm import Core, LdmError
 from ldm.participant import Session
-from ldm.testing import wait_for
+from ldm.brokers import wait_for
 
 from .deployment import FAST, deploy, echo_provider, has_service
 

@@ -15,7 +15,7 @@ import pytest
 from ldm import Core, Participant, ServiceNotFound
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, ServiceList
-from ldm.testing import wait_for
+from ldm.brokers import wait_for
 from ldm.transport import Connected, Message, Transport
 
 from .deployment import (

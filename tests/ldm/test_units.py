@@ -198,7 +198,7 @@ def test_a_topic_that_is_not_utf8_is_counted_not_raised_on_pahos_thread() -> Non
 
 def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
     from ldm._worker import Worker
-    from ldm.testing import wait_for
+    from ldm.brokers import wait_for
 
     class Slow(Worker[int]):
         handled = 0
@@ -238,7 +238,7 @@ def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> Non
     worker.sink(message)  # past the limit: dropped and counted
     worker.sink(Connected("broker"))  # a reconnect is never dropped
     worker.start_worker()
-    from ldm.testing import wait_for
+    from ldm.brokers import wait_for
 
     assert wait_for(lambda: len(worker.seen) == 2, 5)
     worker.stop_worker()

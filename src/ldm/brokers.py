@@ -1,4 +1,5 @@
-"""Brokers for tests: the embedded amqtt broker or a real Mosquitto on a free port.
+"""Brokers on this machine, for local deployments, the demo, benchmarks and tests: the
+embedded amqtt broker or a real Mosquitto on a free port.
 
     with start_broker("mosquitto") as broker:   # or "embedded"
         core = Core.create("user", broker.url)
@@ -40,7 +41,7 @@ BrokerKind = Literal["embedded", "embedded-process", "mosquitto"]
 
 
 class RunningBroker(Protocol):
-    """What tests need from a broker."""
+    """What a local deployment or a test needs from a broker."""
 
     @property
     def url(self) -> str: ...

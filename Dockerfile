@@ -23,9 +23,8 @@ COPY maps ./maps
 # The containers' health checks and the compose simulator (one account per road user).
 COPY deploy/healthcheck.py ./deploy/
 
-# laas.scenario finds maps/ two folders above the package, the source-tree layout; in
-# site-packages that is .../lib/python3.11/maps, so point it at /app/maps.
-RUN ln -s /app/maps "$(python -c 'import laas.scenario as s; print(s.MAPS)')"
+# The bundled maps (laas.map.bundled looks in $LAAS_MAPS first).
+ENV LAAS_MAPS=/app/maps
 
 RUN useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin laas
 USER laas

@@ -16,7 +16,7 @@ import json
 import math
 import sys
 
-from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
+from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
 ORIGIN = (144.9612, -37.8105)  # lon, lat of the road's left edge at the start
 FIRST, RADIUS, TURN, LAST = 240.0, 20.0, -90.0, 240.0

@@ -19,7 +19,7 @@ import json
 import math
 import sys
 
-from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
+from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
 ORIGIN = (9.9760, 53.5585)  # lon, lat of the road's left edge at the start (St. Pauli, Messe)
 FIRST, RADIUS, TURN, LAST = 280.0, 150.0, 30.0, 220.0

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from laas.hdmap import HdMap, Segment
-from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
+from laas.map.hdmap import HdMap, Segment
+from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.models import GpsMeasurement
 
 T0 = 1_800_000_000_000

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from laas.assignment import best_assignment, enumerate_assignments
+from laas.engine.assignment import best_assignment, enumerate_assignments
 
 
 @settings(max_examples=400, deadline=None)

@@ -11,10 +11,10 @@ import math
 
 import pytest
 
-from laas.bench import ROTATION_OFF, BenchConfig, bench_scenario, format_report, run_bench
 from laas.errors import ConfigError
-from laas.hdmap import HdMap
-from laas.scenario import ErrorModel, simulate
+from laas.map.hdmap import HdMap
+from laas.run.bench import ROTATION_OFF, BenchConfig, bench_scenario, format_report, run_bench
+from laas.sim.scenario import ErrorModel, simulate
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from laas.cli import main
-from laas.trace import format_measurement
+from laas.sim.trace import format_measurement
 
 from .helpers import T0, fix_on, small_map, small_map_data
 

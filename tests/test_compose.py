@@ -31,8 +31,8 @@ from typing import Any
 import pytest
 import yaml  # type: ignore[import-untyped]
 
-from ldm.pytest_plugin import need_mosquitto
 from ldm.brokers import find_mosquitto, free_port
+from ldm.pytest_plugin import need_mosquitto
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from laas.config import EngineConfig, Mode
-from laas.engine import Engine
-from laas.hdmap import HdMap
+from laas.engine.engine import Engine
+from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
 
 from .helpers import T0, fix_on, small_map
@@ -99,7 +99,7 @@ def test_expiry_and_forget_free_the_state(sydney: HdMap) -> None:
 
 
 def test_distant_users_get_common_errors_of_their_own_areas() -> None:
-    from laas.common_error import CommonErrorField
+    from laas.engine.common_error import CommonErrorField
 
     field = CommonErrorField(2_000.0, 10.0, 0.05, 0.5)
     here = field.at(np.array([500_000.0, 5_900_000.0]))

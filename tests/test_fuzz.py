@@ -24,9 +24,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from laas.errors import MapError, TraceError
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.service import LaasService
-from laas.trace import read_trace
+from laas.sim.trace import read_trace
 from ldm import Core, KeyPair, LdmError, Participant, Provider, Request, ServiceSpec
 from ldm.crypto import aad
 from ldm.messages import (

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from laas.geo import UtmProjection, utm_zone
+from laas.map.geo import UtmProjection, utm_zone
 
 
 @pytest.mark.parametrize(

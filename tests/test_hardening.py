@@ -16,9 +16,9 @@ from typing import Any
 
 import pytest
 
-from laas.hdmap import HdMap
-from laas.scenario import ErrorModel, hamburg_scenario, simulate
+from laas.map.hdmap import HdMap
 from laas.service import LaasService, start_worker
+from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
 from ldm import (
     Core,
     KeyPair,
@@ -30,6 +30,7 @@ from ldm import (
     ServiceSpec,
     Session,
 )
+from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.config import BrokerSettings
 from ldm.crypto import aad
 from ldm.messages import (
@@ -40,7 +41,6 @@ from ldm.messages import (
     SessionRequest,
 )
 from ldm.pytest_plugin import need_mosquitto
-from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.transport import Event, Message, Transport
 
 from .helpers import Clock

@@ -18,8 +18,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from laas.errors import MapError
-from laas.hdmap import HdMap, Segment
-from laas.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
+from laas.map.hdmap import HdMap, Segment
+from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
 MAPS = Path(__file__).resolve().parent.parent / "maps"
 HAMBURG = MAPS / "messe-hamburg.geojson"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from laas.paper import JointHypothesisFilter
-from laas.transition import direction_likelihood, lane_transition
+from laas.engine.paper import JointHypothesisFilter
+from laas.engine.transition import direction_likelihood, lane_transition
 
 OFFSETS = np.array([0.0, 3.25, 5.975, 7.975])
 NORMAL = np.array([1.0, 0.0])  # the road runs north; lanes increase to the east

@@ -5,13 +5,13 @@ from __future__ import annotations
 import pytest
 
 from laas.config import EngineConfig
-from laas.deployment import LocalDeployment
-from laas.evaluate import answer_trace, score
-from laas.hdmap import HdMap
-from laas.participants import run_participants
-from laas.scenario import hamburg_scenario, simulate
-from ldm.pytest_plugin import broker_kind
+from laas.map.hdmap import HdMap
+from laas.run.deployment import LocalDeployment
+from laas.run.participants import run_participants
+from laas.sim.evaluate import answer_trace, score
+from laas.sim.scenario import hamburg_scenario, simulate
 from ldm.brokers import BrokerKind
+from ldm.pytest_plugin import broker_kind
 
 __all__ = ["broker_kind"]
 

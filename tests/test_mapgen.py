@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from laas.geo import UtmProjection
-from laas.hdmap import HdMap
-from laas.mapgen import (
+from laas.map.geo import UtmProjection
+from laas.map.hdmap import HdMap
+from laas.map.mapgen import (
     Curve,
     LaneSpec,
     Straight,

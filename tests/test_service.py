@@ -6,7 +6,7 @@ from typing import Any
 
 import pytest
 
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig
 from ldm import Request
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from laas.config import EngineConfig
-from laas.tracking import Fix, Track, TrackUpdate
+from laas.engine.tracking import Fix, Track, TrackUpdate
 
 
 def _fix(t: float, e: float, n: float, speed: float = 10.0, heading_deg: float = 90.0) -> Fix:

@@ -9,7 +9,7 @@ discrete Bayes filter over joint lane assignments. It knows no MQTT: the live wo
 from laas.config import EngineConfig, Mode
 from laas.engine import Engine, EngineStats
 from laas.errors import ConfigError, LaasError, MapError, TraceError
-from laas.hdmap import HdMap, Lane, Segment
+from laas.map import HdMap, Lane, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
 __all__ = [

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
-from laas.hdmap import HdMap
-from laas.scenario import MAPS
+from laas.map.bundled import maps_dir
+from laas.map.hdmap import HdMap
 from ldm import BrokerSettings, LdmError
 from ldm.cli import broker_settings, wait_for_signal
 
@@ -39,8 +39,8 @@ def _engine_config(a: argparse.Namespace) -> EngineConfig:
 
 
 def _cmd_replay(a: argparse.Namespace) -> int:
-    from laas.replay import replay
-    from laas.trace import format_answer, read_trace
+    from laas.sim.replay import replay
+    from laas.sim.trace import format_answer, read_trace
 
     hdmap = HdMap.load(a.map)
     errors = 0
@@ -68,8 +68,8 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
-    from laas.scenario import get_scenario, simulate
-    from laas.trace import format_measurement
+    from laas.sim.scenario import get_scenario, simulate
+    from laas.sim.trace import format_measurement
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
@@ -98,8 +98,8 @@ def _cmd_scenario(a: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(a: argparse.Namespace) -> int:
-    from laas.evaluate import evaluate, format_table, print_progress
-    from laas.scenario import get_scenario
+    from laas.sim.evaluate import evaluate, format_table, print_progress
+    from laas.sim.scenario import get_scenario
 
     scenario = get_scenario(a.scenario)
     modes: tuple[Mode, ...] = ("paper", "default") if a.mode == "both" else (a.mode,)
@@ -121,9 +121,9 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
-    from laas.evaluate import answer_trace
-    from laas.plots import plot_lanes_over_time, plot_traces
-    from laas.scenario import get_scenario, simulate
+    from laas.sim.evaluate import answer_trace
+    from laas.sim.plots import plot_lanes_over_time, plot_traces
+    from laas.sim.scenario import get_scenario, simulate
 
     scenario = get_scenario(name)
     hdmap = HdMap.load(scenario.map)
@@ -146,7 +146,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 
 
 def _cmd_demo(a: argparse.Namespace) -> int:
-    from laas.demo import run_demo
+    from laas.run.demo import run_demo
 
     return run_demo(
         Path(a.out),
@@ -158,7 +158,7 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 
 
 def _cmd_bench(a: argparse.Namespace) -> int:
-    from laas.bench import BenchConfig, format_report, run_bench
+    from laas.run.bench import BenchConfig, format_report, run_bench
 
     config = BenchConfig(
         participants=a.participants,
@@ -208,10 +208,10 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
-    from laas.evaluate import score
-    from laas.participants import accounts, run_participants
-    from laas.scenario import get_scenario, simulate
-    from laas.trace import format_answer
+    from laas.run.participants import accounts, run_participants
+    from laas.sim.evaluate import score
+    from laas.sim.scenario import get_scenario, simulate
+    from laas.sim.trace import format_answer
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
@@ -292,7 +292,7 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
 
 
 def _cmd_bench_filter(a: argparse.Namespace) -> int:
-    from laas.filterbench import bench_filter, format_filter_table
+    from laas.run.filterbench import bench_filter, format_filter_table
 
     counts = [n for n in (1, 2, 3, 4, 6, 8, 10, 20, 50, 100, 200) if n <= a.max_users]
     rows = bench_filter(
@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     _connection_args(p, "LAAS")
     p.add_argument(
         "--map",
-        default=os.environ.get("LAAS_MAP", str(MAPS / "messe-hamburg.geojson")),
+        default=os.environ.get("LAAS_MAP", str(maps_dir() / "messe-hamburg.geojson")),
         help="GeoJSON lane map (env LAAS_MAP; default: the Hamburg test road)",
     )
     p.add_argument(

@@ -41,8 +41,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from laas.config import EngineConfig
-from laas.engine import Engine
-from laas.hdmap import HdMap
+from laas.engine.engine import Engine
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, GpsMeasurement, problems
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 

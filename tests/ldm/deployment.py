@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ldm import Core, Participant, Provider, Request, ServiceSpec
-from ldm.config import BrokerSettings
 from ldm.brokers import RunningBroker, wait_for
+from ldm.config import BrokerSettings
 from ldm.transport import Event, Message, Transport
 
 FAST = {

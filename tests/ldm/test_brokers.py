@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from ldm import BrokerProcess, EmbeddedBroker
-from ldm.config import BrokerSettings
 from ldm.brokers import MosquittoBroker, free_port, wait_for
+from ldm.config import BrokerSettings
 from ldm.transport import Connected, Event, Message, Transport
 
 

@@ -9,10 +9,10 @@ from collections.abc import Iterator
 import pytest
 
 from ldm import Core, KeyPair, Provider
+from ldm.brokers import MosquittoBroker, wait_for
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, SessionNotice, SessionRequest
 from ldm.pytest_plugin import need_mosquitto
-from ldm.brokers import MosquittoBroker, wait_for
 from ldm.transport import Event, Message, Transport
 
 from .deployment import ECHO, EchoService

@@ -7,8 +7,8 @@ import time
 import pytest
 
 from ldm import Core, LdmError
-from ldm.participant import Session
 from ldm.brokers import wait_for
+from ldm.participant import Session
 
 from .deployment import FAST, deploy, echo_provider, has_service
 

@@ -11,9 +11,9 @@ from typing import Any
 import pytest
 
 from ldm import ConnectError, Core, Participant, Provider, Request, SessionError
+from ldm.brokers import MosquittoBroker, wait_for
 from ldm.messages import Envelope
 from ldm.pytest_plugin import need_mosquitto
-from ldm.brokers import MosquittoBroker, wait_for
 from ldm.transport import Message
 
 from .deployment import ECHO, Sniffer, has_service

@@ -13,9 +13,9 @@ from typing import Any
 import pytest
 
 from ldm import Core, Participant, ServiceNotFound
+from ldm.brokers import wait_for
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, ServiceList
-from ldm.brokers import wait_for
 from ldm.transport import Connected, Message, Transport
 
 from .deployment import (

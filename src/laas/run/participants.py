@@ -20,8 +20,8 @@ from typing import Any
 from pydantic import ValidationError
 
 from laas.models import CorrectedPosition
-from laas.scenario import Trace
 from laas.service import SERVICE_NAME
+from laas.sim.scenario import Trace
 from ldm import BrokerSettings, Participant, Session
 
 __all__ = ["LiveRun", "accounts", "run_participants", "wait_for_service"]

@@ -6,11 +6,11 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from laas.config import EngineConfig
-from laas.engine import Engine
+from laas.engine.engine import Engine
 from laas.errors import TraceError
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.trace import TraceLine
+from laas.sim.trace import TraceLine
 
 __all__ = ["ReplayResult", "replay"]
 

@@ -28,8 +28,8 @@ import shapely
 from shapely import LineString
 from shapely.ops import substring
 
-from laas.geo import UtmProjection
-from laas.hdmap import DIRECTIONS, LANE_TYPES, Direction, LaneType
+from laas.map.geo import UtmProjection
+from laas.map.hdmap import DIRECTIONS, LANE_TYPES, Direction, LaneType
 
 __all__ = [
     "Curve",

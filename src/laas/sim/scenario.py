@@ -11,17 +11,15 @@ walk) and per-fix Gaussian noise on position, speed and heading (paper section V
 from __future__ import annotations
 
 import math
-import os
-import sys
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from laas.errors import ConfigError
-from laas.hdmap import HdMap, Segment
+from laas.map.bundled import bundled_map
+from laas.map.hdmap import HdMap, Segment
 from laas.models import GpsMeasurement
 
 __all__ = [
@@ -38,18 +36,6 @@ __all__ = [
 ]
 
 
-def _maps() -> Path:
-    """The bundled maps: $LAAS_MAPS, else the checkout's maps/, else the installed copy."""
-    chosen = os.environ.get("LAAS_MAPS")
-    if chosen:
-        return Path(chosen)
-    checkout = Path(__file__).resolve().parents[2] / "maps"
-    if checkout.is_dir():
-        return checkout
-    return Path(sys.prefix) / "share" / "laas" / "maps"
-
-
-MAPS = _maps()
 EPOCH_MS = 1_700_000_000_000  # 2023-11-14T22:13:20Z, the scenario's t = 0
 
 
@@ -237,7 +223,7 @@ def hamburg_scenario() -> Scenario:
     """
     return Scenario(
         name="messe-hamburg",
-        map=str(MAPS / "messe-hamburg.geojson"),
+        map=str(bundled_map("messe-hamburg")),
         route=("messe-0", "messe-1", "messe-2", "messe-3", "messe-4"),
         duration=100.0,
         rate=1.0,
@@ -275,7 +261,7 @@ def melbourne_scenario() -> Scenario:
     """
     return Scenario(
         name="melbourne-corner",
-        map=str(MAPS / "melbourne-corner.geojson"),
+        map=str(bundled_map("melbourne-corner")),
         route=("corner-0", "corner-1", "corner-2", "corner-3", "corner-4"),
         duration=120.0,
         rate=1.0,

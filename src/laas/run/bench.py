@@ -8,7 +8,7 @@
 The brokers are Mosquitto processes (or the embedded broker, each in a child process),
 the two cores and the laas worker share this process, and the participants run in
 worker processes, each participant a real `ldm.Participant` with its own connection.
-They drive simulated road users along the Hamburg road (`laas.scenario`), with the
+They drive simulated road users along the Hamburg road (`laas.sim.scenario`), with the
 fixes' timestamps shifted to the wall clock. Latency is measured where it is felt: from
 just before `Session.submit` (JSON, encryption and publish included) to the moment the
 decrypted reply reaches the participant, on one clock in one process.
@@ -38,13 +38,14 @@ from typing import Any, Literal
 
 import numpy as np
 
-from laas.deployment import BrokerChoice
 from laas.errors import ConfigError
-from laas.evaluate import score
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.participants import run_participants, wait_for_service
-from laas.scenario import (
+from laas.run.deployment import BrokerChoice
+from laas.run.participants import run_participants, wait_for_service
+from laas.service import SERVICE_NAME, start_worker
+from laas.sim.evaluate import score
+from laas.sim.scenario import (
     EPOCH_MS,
     ErrorModel,
     Scenario,
@@ -53,7 +54,6 @@ from laas.scenario import (
     hamburg_scenario,
     simulate,
 )
-from laas.service import SERVICE_NAME, start_worker
 from ldm import BrokerSettings, Core, Participant, Session
 from ldm.brokers import RunningBroker, find_mosquitto, start_broker
 from ldm.transport import Event, Message, Transport

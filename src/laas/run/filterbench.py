@@ -22,11 +22,11 @@ from functools import partial
 
 import numpy as np
 
-from laas.assignment import best_assignment, enumerate_assignments
 from laas.config import EngineConfig, Mode
-from laas.engine import Engine
-from laas.hdmap import HdMap
-from laas.mapgen import LaneSpec, local_to_lonlat, road_features
+from laas.engine.assignment import best_assignment, enumerate_assignments
+from laas.engine.engine import Engine
+from laas.map.hdmap import HdMap
+from laas.map.mapgen import LaneSpec, local_to_lonlat, road_features
 from laas.models import GpsMeasurement
 
 __all__ = ["FilterRow", "bench_filter", "format_filter_table"]

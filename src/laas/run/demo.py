@@ -12,12 +12,12 @@ import sys
 from pathlib import Path
 
 from laas.config import EngineConfig
-from laas.deployment import BrokerChoice, LocalDeployment
-from laas.evaluate import RunResult, answer_trace, score
-from laas.hdmap import HdMap
-from laas.participants import run_participants
-from laas.plots import plot_lanes_over_time, plot_traces
-from laas.scenario import hamburg_scenario, simulate
+from laas.map.hdmap import HdMap
+from laas.run.deployment import BrokerChoice, LocalDeployment
+from laas.run.participants import run_participants
+from laas.sim.evaluate import RunResult, answer_trace, score
+from laas.sim.plots import plot_lanes_over_time, plot_traces
+from laas.sim.scenario import hamburg_scenario, simulate
 
 __all__ = ["run_demo"]
 

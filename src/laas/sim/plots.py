@@ -10,9 +10,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.scenario import EPOCH_MS, Trace
+from laas.sim.scenario import EPOCH_MS, Trace
 
 __all__ = ["plot_lanes_over_time", "plot_traces"]
 

@@ -13,7 +13,7 @@ from types import TracebackType
 from typing import Literal
 
 from laas.config import EngineConfig
-from laas.hdmap import HdMap
+from laas.map.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
 from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker

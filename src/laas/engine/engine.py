@@ -21,14 +21,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from laas.assignment import best_assignment
-from laas.common_error import CommonError, CommonErrorField
 from laas.config import EngineConfig
-from laas.hdmap import HdMap, Segment
+from laas.engine.assignment import best_assignment
+from laas.engine.common_error import CommonError, CommonErrorField
+from laas.engine.paper import JointHypothesisFilter
+from laas.engine.tracking import Fix, Track, TrackUpdate
+from laas.engine.transition import direction_likelihood, lane_transition
+from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement
-from laas.paper import JointHypothesisFilter
-from laas.tracking import Fix, Track, TrackUpdate
-from laas.transition import direction_likelihood, lane_transition
 
 __all__ = ["Engine", "EngineStats"]
 

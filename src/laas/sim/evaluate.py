@@ -28,10 +28,10 @@ from functools import lru_cache
 import numpy as np
 
 from laas.config import EngineConfig, Mode
-from laas.engine import Engine
-from laas.hdmap import HdMap
+from laas.engine.engine import Engine
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.scenario import ErrorModel, Scenario, Trace, simulate
+from laas.sim.scenario import ErrorModel, Scenario, Trace, simulate
 
 __all__ = [
     "PAPER_TABLE_I",

@@ -1,0 +1,322 @@
+"""The lane-level HD map: lanes, road elements (segments) and the queries the engine needs.
+
+A map is a set of *segments*, road elements whose lanes run side by side; lane 0 is the
+left-most lane looking along the segment's reference direction. Everything is metric, in
+the UTM zone of the map's centroid (:mod:`laas.map.geo`), and each segment carries the
+exact curvilinear frame of its reference line (:mod:`laas.map.frame`). Maps are read from
+the GeoJSON lane format (:mod:`laas.map.geojson`, described in ``maps/README.md``); the
+engine never knows where a map came from.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Literal, cast, get_args
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+from shapely import LineString, Point, Polygon, STRtree
+
+from laas.errors import MapError
+from laas.map.frame import Frame
+from laas.map.geo import UtmProjection
+
+__all__ = ["DIRECTIONS", "LANE_TYPES", "Direction", "HdMap", "Lane", "LaneType", "Segment"]
+
+LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
+Direction = Literal["forward", "backward", "both"]
+LANE_TYPES: frozenset[str] = frozenset(get_args(LaneType))
+DIRECTIONS: frozenset[str] = frozenset(get_args(Direction))
+
+FloatArray = npt.NDArray[np.float64]
+
+_OFFSET_STEP = 1.0  # m, station spacing of the cached lane-offset table
+
+
+@dataclass(frozen=True)
+class Lane:
+    """One lane of one segment; the centre line is in UTM metres, in the reference direction."""
+
+    segment: str
+    index: int
+    type: LaneType
+    width: float
+    direction: Direction
+    centerline: LineString
+    properties: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+
+# ----------------------------------------------------------------------------------------------
+# Segment
+# ----------------------------------------------------------------------------------------------
+
+
+class Segment:
+    """A road element: lanes side by side with a shared curvilinear frame (see module docstring)."""
+
+    __slots__ = (
+        "_area",
+        "_frame",
+        "_id",
+        "_lane_d",
+        "_lane_samples",
+        "_lanes",
+        "_left",
+        "_reference",
+        "_successors",
+    )
+
+    def __init__(self, id: str, lanes: Iterable[Lane], successors: Iterable[str] = ()) -> None:
+        ordered = tuple(sorted(lanes, key=lambda lane: lane.index))
+        if not ordered:
+            raise MapError(f"segment {id!r} has no lanes")
+        indices = [lane.index for lane in ordered]
+        if indices != list(range(len(ordered))):
+            raise MapError(f"segment {id!r}: lane indices must be contiguous from 0, got {indices}")
+        for lane in ordered:
+            if lane.segment != id:
+                raise MapError(f"lane {lane.index} belongs to {lane.segment!r}, not {id!r}")
+        self._id = id
+        self._lanes = ordered
+        self._successors = tuple(dict.fromkeys(successors))
+        self._reference = ordered[0].centerline
+        self._frame = Frame(np.asarray(self._reference.coords, dtype=np.float64)[:, :2])
+
+        # Each lane's offset d(s) along the reference, sampled from its (densified) centre line.
+        length = self._frame.length
+        grid = np.linspace(0.0, length, max(2, math.ceil(length / _OFFSET_STEP) + 1))
+        samples: list[FloatArray] = []
+        table = np.zeros((len(grid), len(ordered)))
+        for k, lane in enumerate(ordered):
+            dense = shapely.segmentize(lane.centerline, _OFFSET_STEP)
+            sd = self._frame.frame_array(np.asarray(dense.coords, dtype=np.float64)[:, :2])
+            samples.append(sd)
+            if k > 0:
+                order = np.argsort(sd[:, 0], kind="stable")
+                table[:, k] = np.interp(grid, sd[order, 0], sd[order, 1])
+        self._lane_samples = tuple(samples)
+        self._lane_d = table
+        self._left = -ordered[0].width / 2.0
+
+        self._area: Polygon | None = None
+
+    # -- attributes --------------------------------------------------------------------------
+
+    @property
+    def id(self) -> str:
+        return self._id
+
+    @property
+    def lanes(self) -> tuple[Lane, ...]:
+        return self._lanes
+
+    @property
+    def successors(self) -> tuple[str, ...]:
+        return self._successors
+
+    @property
+    def reference(self) -> LineString:
+        """Lane 0's centre line: the reference of the segment frame."""
+        return self._reference
+
+    @property
+    def area(self) -> Polygon:
+        """The element's surface: lane centre lines buffered by half their width, flat caps.
+
+        Built on first use (the loader validates the lanes first, then builds it).
+        """
+        if self._area is None:
+            self._area = self._build_area()
+        return self._area
+
+    def _build_area(self) -> Polygon:
+        ordered = self._lanes
+        parts = [
+            shapely.buffer(lane.centerline, lane.width / 2.0, cap_style="flat") for lane in ordered
+        ]
+        area = shapely.union_all(parts)
+        if not isinstance(area, Polygon) or len(area.interiors) > 0:
+            # small gaps between lanes (tolerated by validation): close them morphologically
+            gap = 0.75
+            closed = shapely.buffer(
+                shapely.buffer(area, gap, join_style="mitre"), -gap, join_style="mitre"
+            )
+            if isinstance(closed, Polygon) and not closed.is_empty:
+                area = Polygon(closed.exterior)
+        if not isinstance(area, Polygon):
+            raise MapError(f"segment {self._id!r}: the lanes do not form one connected surface")
+        return area
+
+    @property
+    def length(self) -> float:
+        """Length of the reference line in metres."""
+        return self._frame.length
+
+    def __repr__(self) -> str:
+        return (
+            f"Segment({self._id!r}, lanes={len(self._lanes)}, length={self.length:.1f} m, "
+            f"successors={list(self._successors)})"
+        )
+
+    # -- frame -------------------------------------------------------------------------------
+
+    def frame(self, x: float, y: float) -> tuple[float, float]:
+        """(s, d) of a UTM point: station along the reference, lateral offset (+ to the right)."""
+        x, y = float(x), float(y)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"point must be finite, got ({x}, {y})")
+        return self._frame.frame(x, y)
+
+    def frame_array(self, xy: npt.ArrayLike) -> FloatArray:
+        """Vectorised :meth:`frame`: (n, 2) UTM points -> (n, 2) of (s, d)."""
+        return self._frame.frame_array(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+    def point(self, s: float, d: float = 0.0) -> tuple[float, float]:
+        """The UTM point at station s and lateral offset d; the inverse of :meth:`frame`."""
+        s, d = float(s), float(d)
+        if not (math.isfinite(s) and math.isfinite(d)):
+            raise ValueError(f"station and offset must be finite, got ({s}, {d})")
+        return self._frame.point(s, d)
+
+    def tangent(self, s: float) -> FloatArray:
+        """Unit (east, north) vector of the reference direction at station s."""
+        return cast(FloatArray, self._frame.t[self._frame.piece_at(s)].copy())
+
+    def heading(self, s: float) -> float:
+        """Reference direction at s in degrees from (grid) north, clockwise, in [0, 360)."""
+        tx, ty = self._frame.t[self._frame.piece_at(s)]
+        h = math.degrees(math.atan2(tx, ty)) % 360.0
+        return 0.0 if h >= 360.0 else h
+
+    def lane_offsets(self, s: float) -> FloatArray:
+        """d of every lane's centre line at station s, shape (L,); lane 0 is 0.0.
+
+        Outside [0, length] the offsets at the nearer end are used.
+        """
+        if not math.isfinite(s):
+            raise ValueError(f"station must be finite, got {s}")
+        table = self._lane_d
+        pos = min(max(s, 0.0), self.length) / self.length * (len(table) - 1)
+        i = min(int(pos), len(table) - 2)
+        f = pos - i
+        return cast(FloatArray, table[i] + f * (table[i + 1] - table[i]))
+
+    def lateral_bounds(self, s: float) -> tuple[float, float]:
+        """(d of the left edge, d of the right edge) of the road element at station s."""
+        right = float(self.lane_offsets(s)[-1]) + self._lanes[-1].width / 2.0
+        return self._left, right
+
+    def lane_point(self, lane: int, x: float, y: float) -> tuple[float, float]:
+        """The point of lane ``lane``'s centre line nearest to the UTM point (x, y)."""
+        if not 0 <= lane < len(self._lanes):
+            raise IndexError(f"segment {self._id!r} has no lane {lane}")
+        line = self._lanes[lane].centerline
+        p = line.interpolate(line.project(Point(x, y)))
+        return float(p.x), float(p.y)
+
+    def _depth(self, x: float, y: float) -> float:
+        """How far inside the element a point is (min distance to an edge in the frame)."""
+        s, d = self.frame(x, y)
+        left, right = self.lateral_bounds(s)
+        return min(s, self.length - s, d - left, right - d)
+
+
+# ----------------------------------------------------------------------------------------------
+# The map
+# ----------------------------------------------------------------------------------------------
+
+
+class HdMap:
+    """Segments in one UTM projection, with an STRtree over their surfaces."""
+
+    def __init__(
+        self, segments: Iterable[Segment], projection: UtmProjection, source: str = "<memory>"
+    ) -> None:
+        segs = list(segments)
+        if not segs:
+            raise MapError(f"{source}: the map has no segments")
+        by_id: dict[str, Segment] = {}
+        for seg in segs:
+            if seg.id in by_id:
+                raise MapError(f"{source}: duplicate segment {seg.id!r}")
+            by_id[seg.id] = seg
+        for seg in segs:
+            for succ in seg.successors:
+                if succ not in by_id:
+                    raise MapError(f"{source}: segment {seg.id!r} names unknown successor {succ!r}")
+        self.projection = projection
+        self.source = source
+        self._segments = MappingProxyType(by_id)
+        self._sorted = sorted(segs, key=lambda seg: seg.id)  # tree index order = id order
+        self._tree = STRtree([seg.area for seg in self._sorted])
+        b = np.array([seg.area.bounds for seg in segs])
+        self._bounds = (
+            float(b[:, 0].min()),
+            float(b[:, 1].min()),
+            float(b[:, 2].max()),
+            float(b[:, 3].max()),
+        )
+
+    @property
+    def segments(self) -> Mapping[str, Segment]:
+        """Segments by id, in file order."""
+        return self._segments
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(min x, min y, max x, max y) of all surfaces, UTM metres."""
+        return self._bounds
+
+    def __repr__(self) -> str:
+        return (
+            f"HdMap({self.source!r}, {len(self._segments)} segments, EPSG:{self.projection.epsg})"
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> HdMap:
+        """Load and validate a GeoJSON map file; raises :class:`MapError` naming the problem."""
+        from laas.map.geojson import read_geojson_file
+
+        return read_geojson_file(path)
+
+    @classmethod
+    def from_geojson(cls, data: Mapping[str, Any], source: str = "<memory>") -> HdMap:
+        """Build a map from a parsed GeoJSON FeatureCollection (see ``maps/README.md``)."""
+        from laas.map.geojson import read_geojson
+
+        return read_geojson(data, source)
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def locate(self, x: float, y: float, max_distance: float = 15.0) -> Segment | None:
+        """The segment whose surface contains the UTM point (x, y).
+
+        Several: the one the point is deepest inside (largest distance to the element's edges
+        in its frame), ties by id. None contains it: the nearest within ``max_distance``
+        (ties by id). Otherwise None.
+        """
+        pt = Point(x, y)
+        hits = self._tree.query(pt, predicate="intersects")
+        if len(hits) == 1:
+            return self._sorted[int(hits[0])]
+        if len(hits) > 1:
+            cands = [self._sorted[int(i)] for i in hits]
+            return min(cands, key=lambda seg: (-seg._depth(x, y), seg.id))
+        if max_distance <= 0.0:
+            return None
+        near = self._tree.query_nearest(pt, max_distance=max_distance, all_matches=True)
+        if len(near) == 0:
+            return None
+        return self._sorted[int(np.min(near))]
+
+    def segments_near(self, x: float, y: float, radius: float) -> list[Segment]:
+        """Segments whose surface is within ``radius`` metres of (x, y), nearest first."""
+        pt = Point(x, y)
+        idx = self._tree.query(pt, predicate="dwithin", distance=radius)
+        found = [self._sorted[int(i)] for i in idx]
+        return sorted(found, key=lambda seg: (float(seg.area.distance(pt)), seg.id))

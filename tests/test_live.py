@@ -8,8 +8,8 @@ from laas.config import EngineConfig
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
-from laas.sim.evaluate import answer_trace, score
 from laas.sim.scenario import hamburg_scenario, simulate
+from laas.sim.score import answer_trace, score
 from ldm.brokers import BrokerKind
 from ldm.pytest_plugin import broker_kind
 

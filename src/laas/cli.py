@@ -14,6 +14,7 @@ from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
 from laas.map.bundled import maps_dir
 from laas.map.hdmap import HdMap
+from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
 from ldm.cli import broker_settings, wait_for_signal
 
@@ -68,13 +69,12 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
-    from laas.sim.scenario import get_scenario, simulate
+    from laas.sim.scenario import get_scenario, simulate_with
     from laas.sim.trace import format_measurement
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
-    errors = scenario.errors.model_copy(update={"sigma_pos": a.sigma_pos, "sigma_vel": a.sigma_vel})
-    trace = simulate(hdmap, scenario, errors, a.seed)
+    trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "trace.jsonl", "w", encoding="utf-8") as f:
@@ -98,7 +98,7 @@ def _cmd_scenario(a: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(a: argparse.Namespace) -> int:
-    from laas.sim.evaluate import evaluate, format_table, print_progress
+    from laas.sim.evaluate import evaluate, format_table
     from laas.sim.scenario import get_scenario
 
     scenario = get_scenario(a.scenario)
@@ -108,7 +108,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
         modes=modes,
         runs=a.runs,
         workers=a.workers,
-        progress=None if a.json else print_progress,
+        progress=None if a.json else progress_printer("evaluate", "runs"),
     )
     if a.json:
         print(json.dumps([r.as_dict() for r in rows], indent=1))
@@ -121,14 +121,13 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
-    from laas.sim.evaluate import answer_trace
     from laas.sim.plots import plot_lanes_over_time, plot_traces
-    from laas.sim.scenario import get_scenario, simulate
+    from laas.sim.scenario import get_scenario, simulate_with
+    from laas.sim.score import answer_trace
 
     scenario = get_scenario(name)
     hdmap = HdMap.load(scenario.map)
-    errors = scenario.errors.model_copy(update={"sigma_pos": sigma_pos, "sigma_vel": sigma_vel})
-    trace = simulate(hdmap, scenario, errors, seed)
+    trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
     out.mkdir(parents=True, exist_ok=True)
     paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
     for mode in ("paper", "default"):
@@ -209,18 +208,13 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from laas.run.participants import accounts, run_participants
-    from laas.sim.evaluate import score
-    from laas.sim.scenario import get_scenario, simulate
+    from laas.sim.scenario import get_scenario, simulate_with
+    from laas.sim.score import score
     from laas.sim.trace import format_answer
 
     scenario = get_scenario(a.scenario)
     hdmap = HdMap.load(scenario.map)
-    trace = simulate(
-        hdmap,
-        scenario,
-        scenario.errors.model_copy(update={"sigma_pos": a.sigma_pos, "sigma_vel": a.sigma_vel}),
-        a.seed,
-    )
+    trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
     if a.list_accounts:
         print("\n".join(accounts(trace, a.account_prefix or "").values()))
         return 0
@@ -237,7 +231,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         trace,
         account_prefix=a.account_prefix,
         speedup=a.speedup,
-        progress=print_sent,
+        progress=progress_printer("  sent", "fixes"),
     )
     out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
     try:
@@ -259,12 +253,6 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
-
-
-def print_sent(done: int, total: int) -> None:
-    """Progress of a live run on stderr, about ten lines in all."""
-    if done == total or done % max(1, total // 10) == 0:
-        print(f"  sent {done}/{total} fixes", file=sys.stderr, flush=True)
 
 
 def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:

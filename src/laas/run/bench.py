@@ -44,7 +44,6 @@ from laas.models import CorrectedPosition
 from laas.run.deployment import BrokerChoice
 from laas.run.participants import run_participants, wait_for_service
 from laas.service import SERVICE_NAME, start_worker
-from laas.sim.evaluate import score
 from laas.sim.scenario import (
     EPOCH_MS,
     ErrorModel,
@@ -54,6 +53,7 @@ from laas.sim.scenario import (
     hamburg_scenario,
     simulate,
 )
+from laas.sim.score import score
 from ldm import BrokerSettings, Core, Participant, Session
 from ldm.brokers import RunningBroker, find_mosquitto, start_broker
 from ldm.transport import Event, Message, Transport

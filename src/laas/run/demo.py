@@ -13,18 +13,14 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.map.hdmap import HdMap
+from laas.progress import progress_printer
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.participants import run_participants
-from laas.sim.evaluate import RunResult, answer_trace, score
 from laas.sim.plots import plot_lanes_over_time, plot_traces
-from laas.sim.scenario import hamburg_scenario, simulate
+from laas.sim.scenario import hamburg_scenario, simulate_with
+from laas.sim.score import RunResult, answer_trace, score
 
 __all__ = ["run_demo"]
-
-
-def _progress(done: int, total: int) -> None:
-    if done == total or done % max(1, total // 10) == 0:
-        print(f"  sent {done}/{total} fixes", file=sys.stderr, flush=True)
 
 
 def _row(name: str, r: RunResult) -> str:
@@ -46,8 +42,8 @@ def run_demo(
     """Run the demo; print the table; write the pictures to `out`."""
     scenario = hamburg_scenario()
     hdmap = HdMap.load(scenario.map)
-    errors = scenario.errors.model_copy(update={"sigma_pos": sigma_pos, "sigma_vel": sigma_vel})
-    trace = simulate(hdmap, scenario, errors, seed)
+    trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
+    errors = trace.errors
     config = EngineConfig(sigma_pos=sigma_pos, sigma_vel=sigma_vel, sigma_heading=0.05)
     print(
         f"LaaS demo: {len(scenario.users)} road users on {scenario.name}, {len(trace.fixes)} "
@@ -60,7 +56,12 @@ def run_demo(
             "service), 2 LDM cores and the laas worker"
         )
         print(f"running the road users as LDM participants at {speedup:g}x real time:")
-        live = run_participants(deployment.user_url, trace, speedup=speedup, progress=_progress)
+        live = run_participants(
+            deployment.user_url,
+            trace,
+            speedup=speedup,
+            progress=progress_printer("  sent", "fixes"),
+        )
     for error in live.errors[:5]:
         print(f"  {error}", file=sys.stderr)
     if not live.answered:

@@ -1,26 +1,16 @@
 """The paper's evaluation (section V, Table I), reproduced and extended.
 
-Each configuration is run on `runs` seeds; every run simulates the scenario, feeds
-its fixes to a fresh `Engine` one by one (exactly as `laas replay` and the worker do)
-and scores the answers against the ground truth:
-
-    RMSE_x = sqrt(mean (e_hat - e)^2),   RMSE_y = sqrt(mean (n_hat - n)^2),
-    AED    = mean sqrt((e_hat - e)^2 + (n_hat - n)^2),
-    Acc.   = share of fixes whose (segment, lane) is the true one.
-
-The table shows the mean over runs. Errors are also split across and along the road
-(the true direction of travel), and before and after the common error became
-observable: the first time the orientations of the roads the users have driven so far
-span more than `OBSERVABLE_SPAN` degrees (until then no lane constraint says anything
-along the road).
+Each configuration is run on `runs` seeds, in a pool of processes; every run simulates
+the scenario, feeds its fixes to a fresh `Engine` one by one (exactly as `laas replay`
+and the worker do) and scores the answers (:mod:`laas.sim.score`). The table shows the
+mean over runs.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from functools import lru_cache
@@ -28,25 +18,12 @@ from functools import lru_cache
 import numpy as np
 
 from laas.config import EngineConfig, Mode
-from laas.engine.engine import Engine
 from laas.map.hdmap import HdMap
-from laas.models import CorrectedPosition
-from laas.sim.scenario import ErrorModel, Scenario, Trace, simulate
+from laas.progress import Progress
+from laas.sim.scenario import ErrorModel, Scenario, simulate
+from laas.sim.score import RunResult, run_trace
 
-__all__ = [
-    "PAPER_TABLE_I",
-    "TABLE_I_CONFIGS",
-    "Row",
-    "RunResult",
-    "answer_trace",
-    "evaluate",
-    "format_table",
-    "print_progress",
-    "run_trace",
-    "score",
-]
-
-OBSERVABLE_SPAN = 20.0  # degrees
+__all__ = ["PAPER_TABLE_I", "TABLE_I_CONFIGS", "Row", "evaluate", "format_table"]
 
 TABLE_I_CONFIGS: tuple[tuple[bool, float, float], ...] = tuple(
     (kf, sp, sv)
@@ -66,22 +43,6 @@ PAPER_TABLE_I: dict[tuple[bool, float], tuple[float, float, float, float]] = {
     (True, 4.0): (3.10, 3.70, 4.10, 0.66),
 }
 """The paper's (RMSE_x, RMSE_y, AED, Acc.) per (Kalman filter, sigma_pos)."""
-
-
-@dataclass(frozen=True)
-class RunResult:
-    """The scores of one run."""
-
-    rmse_x: float
-    rmse_y: float
-    aed: float
-    accuracy: float
-    cross: float  # mean |error| across the road
-    along: float  # mean |error| along the road
-    aed_before: float  # AED before the common error was observable (nan if never)
-    aed_after: float  # AED after (nan if it never became observable)
-    raw_aed: float  # AED of the raw fixes
-    answered: int
 
 
 @dataclass(frozen=True)
@@ -108,72 +69,6 @@ class Row:
         return asdict(self)
 
 
-def answer_trace(
-    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None
-) -> list[CorrectedPosition | None]:
-    """A fresh engine's answer to every fix of a simulated trace, in order."""
-    engine = Engine(hdmap, config)
-    return [engine.process(f.user, f.measurement) for f in trace.fixes]
-
-
-def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
-    """Feed a simulated trace to a fresh engine and score its answers."""
-    return score(hdmap, trace, answer_trace(hdmap, trace, config))
-
-
-def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:
-    """Score answers (one per fix of the trace, None where none came) against the truth."""
-    proj = hdmap.projection
-    n = len(trace.fixes)
-    if len(answers) != n:
-        raise ValueError(f"{len(answers)} answers for {n} fixes; give one (or None) per fix")
-    err = np.full((n, 2), np.nan)
-    raw = np.zeros(n)
-    ok = np.zeros(n, dtype=bool)
-    tangent = np.zeros((n, 2))
-    observable = np.zeros(n, dtype=bool)
-    lo = hi = None
-    for i, (fix, answer) in enumerate(zip(trace.fixes, answers, strict=True)):
-        h = math.radians(fix.true_heading)
-        tangent[i] = (math.sin(h), math.cos(h))
-        heading = fix.true_heading
-        if lo is None or hi is None:
-            lo = hi = heading
-        else:  # the span of road orientations seen so far (mod 180: both ways are one road)
-            rel = (heading - lo + 90.0) % 180.0 - 90.0
-            lo, hi = (lo + min(rel, 0.0)) % 180.0, max(hi, lo + max(rel, 0.0))
-        observable[i] = (hi - lo) > OBSERVABLE_SPAN
-        m = fix.measurement
-        me, mn = proj.to_utm(m.longitude, m.latitude)
-        raw[i] = math.hypot(me - fix.true_e, mn - fix.true_n)
-        if answer is None:
-            continue
-        e, nn = proj.to_utm(answer.longitude, answer.latitude)
-        err[i] = (e - fix.true_e, nn - fix.true_n)
-        ok[i] = answer.segment == fix.segment and answer.lane == fix.lane
-    answered = ~np.isnan(err[:, 0])
-    if not answered.any():
-        raise ValueError("no fix of the trace was answered; nothing to score")
-    e_ok = err[answered]
-    dist = np.hypot(e_ok[:, 0], e_ok[:, 1])
-    t_ok = tangent[answered]
-    along = np.abs((e_ok * t_ok).sum(axis=1))
-    cross = np.abs(e_ok[:, 0] * t_ok[:, 1] - e_ok[:, 1] * t_ok[:, 0])
-    obs = observable[answered]
-    return RunResult(
-        rmse_x=float(np.sqrt(np.mean(e_ok[:, 0] ** 2))),
-        rmse_y=float(np.sqrt(np.mean(e_ok[:, 1] ** 2))),
-        aed=float(dist.mean()),
-        accuracy=float(ok.mean()),
-        cross=float(cross.mean()),
-        along=float(along.mean()),
-        aed_before=float(dist[~obs].mean()) if (~obs).any() else math.nan,
-        aed_after=float(dist[obs].mean()) if obs.any() else math.nan,
-        raw_aed=float(raw.mean()),
-        answered=int(answered.sum()),
-    )
-
-
 @lru_cache(maxsize=4)
 def _load(path: str) -> HdMap:
     return HdMap.load(path)
@@ -197,7 +92,7 @@ def evaluate(
     runs: int = 20,
     configs: Sequence[tuple[bool, float, float]] = TABLE_I_CONFIGS,
     workers: int | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
 ) -> list[Row]:
     """Run every (mode, configuration) on seeds 0..runs-1; the same seeds for every mode.
 
@@ -287,10 +182,3 @@ def format_table(rows: Sequence[Row]) -> str:
         "AED cut: 1 - AED / raw AED)"
     )
     return "\n".join(lines)
-
-
-def print_progress(done: int, total: int) -> None:
-    """A progress line on stderr, rewritten in place on a terminal."""
-    end = "\n" if done == total or not sys.stderr.isatty() else "\r"
-    if done == total or sys.stderr.isatty() or done % max(1, total // 10) == 0:
-        print(f"evaluate: {done}/{total} runs", end=end, file=sys.stderr, flush=True)

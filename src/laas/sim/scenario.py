@@ -33,6 +33,7 @@ __all__ = [
     "hamburg_scenario",
     "melbourne_scenario",
     "simulate",
+    "simulate_with",
 ]
 
 
@@ -211,6 +212,14 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
                 SimulatedFix(plan.user, plan.kind, measurement, e, n, heading, seg_id, lane)
             )
     return Trace(scenario=scenario, errors=errors, seed=seed, fixes=tuple(fixes))
+
+
+def simulate_with(
+    hdmap: HdMap, scenario: Scenario, seed: int, *, sigma_pos: float, sigma_vel: float
+) -> Trace:
+    """`simulate` with the scenario's own error model at these receiver sigmas."""
+    errors = scenario.errors.model_copy(update={"sigma_pos": sigma_pos, "sigma_vel": sigma_vel})
+    return simulate(hdmap, scenario, errors, seed)
 
 
 def hamburg_scenario() -> Scenario:

@@ -1,0 +1,111 @@
+"""Scores of a run: the engine's answers against the ground truth of a simulated trace.
+
+    RMSE_x = sqrt(mean (e_hat - e)^2),   RMSE_y = sqrt(mean (n_hat - n)^2),
+    AED    = mean sqrt((e_hat - e)^2 + (n_hat - n)^2),
+    Acc.   = share of fixes whose (segment, lane) is the true one.
+
+Errors are also split across and along the road (the true direction of travel), and
+before and after the common error became observable: the first time the orientations of
+the roads the users have driven so far span more than `OBSERVABLE_SPAN` degrees (until
+then no lane constraint says anything along the road).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from laas.config import EngineConfig
+from laas.engine import Engine
+from laas.map.hdmap import HdMap
+from laas.models import CorrectedPosition
+from laas.sim.scenario import Trace
+
+__all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "run_trace", "score"]
+
+OBSERVABLE_SPAN = 20.0  # degrees
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """The scores of one run."""
+
+    rmse_x: float
+    rmse_y: float
+    aed: float
+    accuracy: float
+    cross: float  # mean |error| across the road
+    along: float  # mean |error| along the road
+    aed_before: float  # AED before the common error was observable (nan if never)
+    aed_after: float  # AED after (nan if it never became observable)
+    raw_aed: float  # AED of the raw fixes
+    answered: int
+
+
+def answer_trace(
+    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None
+) -> list[CorrectedPosition | None]:
+    """A fresh engine's answer to every fix of a simulated trace, in order."""
+    engine = Engine(hdmap, config)
+    return [engine.process(f.user, f.measurement) for f in trace.fixes]
+
+
+def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
+    """Feed a simulated trace to a fresh engine and score its answers."""
+    return score(hdmap, trace, answer_trace(hdmap, trace, config))
+
+
+def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:
+    """Score answers (one per fix of the trace, None where none came) against the truth."""
+    proj = hdmap.projection
+    n = len(trace.fixes)
+    if len(answers) != n:
+        raise ValueError(f"{len(answers)} answers for {n} fixes; give one (or None) per fix")
+    err = np.full((n, 2), np.nan)
+    raw = np.zeros(n)
+    ok = np.zeros(n, dtype=bool)
+    tangent = np.zeros((n, 2))
+    observable = np.zeros(n, dtype=bool)
+    lo = hi = None
+    for i, (fix, answer) in enumerate(zip(trace.fixes, answers, strict=True)):
+        h = math.radians(fix.true_heading)
+        tangent[i] = (math.sin(h), math.cos(h))
+        heading = fix.true_heading
+        if lo is None or hi is None:
+            lo = hi = heading
+        else:  # the span of road orientations seen so far (mod 180: both ways are one road)
+            rel = (heading - lo + 90.0) % 180.0 - 90.0
+            lo, hi = (lo + min(rel, 0.0)) % 180.0, max(hi, lo + max(rel, 0.0))
+        observable[i] = (hi - lo) > OBSERVABLE_SPAN
+        m = fix.measurement
+        me, mn = proj.to_utm(m.longitude, m.latitude)
+        raw[i] = math.hypot(me - fix.true_e, mn - fix.true_n)
+        if answer is None:
+            continue
+        e, nn = proj.to_utm(answer.longitude, answer.latitude)
+        err[i] = (e - fix.true_e, nn - fix.true_n)
+        ok[i] = answer.segment == fix.segment and answer.lane == fix.lane
+    answered = ~np.isnan(err[:, 0])
+    if not answered.any():
+        raise ValueError("no fix of the trace was answered; nothing to score")
+    e_ok = err[answered]
+    dist = np.hypot(e_ok[:, 0], e_ok[:, 1])
+    t_ok = tangent[answered]
+    along = np.abs((e_ok * t_ok).sum(axis=1))
+    cross = np.abs(e_ok[:, 0] * t_ok[:, 1] - e_ok[:, 1] * t_ok[:, 0])
+    obs = observable[answered]
+    return RunResult(
+        rmse_x=float(np.sqrt(np.mean(e_ok[:, 0] ** 2))),
+        rmse_y=float(np.sqrt(np.mean(e_ok[:, 1] ** 2))),
+        aed=float(dist.mean()),
+        accuracy=float(ok.mean()),
+        cross=float(cross.mean()),
+        along=float(along.mean()),
+        aed_before=float(dist[~obs].mean()) if (~obs).any() else math.nan,
+        aed_after=float(dist[obs].mean()) if obs.any() else math.nan,
+        raw_aed=float(raw.mean()),
+        answered=int(answered.sum()),
+    )

@@ -42,6 +42,10 @@ class GpsMeasurement(BaseModel):
         description="course over ground, degrees from north, clockwise"
     )
     speed: Annotated[float, Field(ge=0.0, le=150.0)] = Field(description="ground speed, m/s")
+    accuracy: Annotated[float, Field(gt=0.0, le=10_000.0)] | None = Field(
+        default=None,
+        description="the receiver's own 1-sigma horizontal accuracy estimate, m, if it gives one",
+    )
 
 
 class CorrectedPosition(BaseModel):

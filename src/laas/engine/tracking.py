@@ -30,7 +30,6 @@ class TrackUpdate(enum.Enum):
     """What a fix did to its track."""
 
     ACCEPTED = "accepted"
-    STARTED = "started"
     RESTARTED = "restarted"
     DUPLICATE = "duplicate"
     OUT_OF_ORDER = "out_of_order"

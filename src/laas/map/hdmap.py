@@ -25,10 +25,10 @@ from shapely import LineString, Point, Polygon, STRtree
 from laas.errors import MapError
 from laas.map.frame import Frame
 from laas.map.geo import UtmProjection
+from laas.models import LaneType
 
 __all__ = ["DIRECTIONS", "LANE_TYPES", "Direction", "HdMap", "Lane", "LaneType", "Segment"]
 
-LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
 Direction = Literal["forward", "backward", "both"]
 LANE_TYPES: frozenset[str] = frozenset(get_args(LaneType))
 DIRECTIONS: frozenset[str] = frozenset(get_args(Direction))

@@ -467,7 +467,9 @@ def _shards(trace: Trace, processes: int, url: str, config: BenchConfig) -> list
     sends: list[list[tuple[float, str, dict[str, Any]]]] = [[] for _ in range(processes)]
     for fix in trace.fixes:
         offset = (fix.measurement.timestamp - EPOCH_MS) / 1000.0
-        sends[owner[fix.user]].append((offset, fix.user, fix.measurement.model_dump()))
+        sends[owner[fix.user]].append(
+            (offset, fix.user, fix.measurement.model_dump(exclude_none=True))
+        )
     tag = secrets.token_hex(3)
     return [_Shard(k, url, tag, s, config.reply_timeout) for k, s in enumerate(sends) if s]
 

@@ -108,7 +108,9 @@ def run_participants(
             delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            payload = m.model_copy(update={"timestamp": m.timestamp + shift}).model_dump()
+            payload = m.model_copy(update={"timestamp": m.timestamp + shift}).model_dump(
+                exclude_none=True
+            )
             sent = time.monotonic()
             future = sessions[fix.user].submit(payload)
             future.add_done_callback(_stamp(done_at, i))

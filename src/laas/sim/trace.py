@@ -12,14 +12,13 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import IO
 
 from pydantic import ValidationError
 
 from laas.errors import TraceError
 from laas.models import CorrectedPosition, GpsMeasurement, problems
 
-__all__ = ["TraceLine", "format_answer", "format_measurement", "read_trace", "write_lines"]
+__all__ = ["TraceLine", "format_answer", "format_measurement", "read_trace"]
 
 MAX_LINE = 64 * 1024  # bytes; a longer line is refused, not parsed
 
@@ -65,15 +64,9 @@ def read_trace(lines: Iterable[str], source: str = "<trace>") -> Iterator[TraceL
 
 def format_measurement(user: str, measurement: GpsMeasurement) -> str:
     """One trace line (no newline)."""
-    return json.dumps({"user": user, **measurement.model_dump()})
+    return json.dumps({"user": user, **measurement.model_dump(exclude_none=True)})
 
 
 def format_answer(user: str, answer: CorrectedPosition) -> str:
     """One output line of `laas replay` (no newline): the answer's fields plus `user`."""
     return json.dumps({"user": user, **answer.model_dump()})
-
-
-def write_lines(out: IO[str], lines: Iterable[str]) -> None:
-    """Write lines, each ended by a newline."""
-    for line in lines:
-        out.write(line + "\n")

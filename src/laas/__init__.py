@@ -10,7 +10,7 @@ from laas.config import EngineConfig, Mode
 from laas.engine import Engine, EngineStats
 from laas.errors import ConfigError, LaasError, MapError, TraceError
 from laas.map import HdMap, Lane, Segment
-from laas.models import CorrectedPosition, GpsMeasurement, LaneType
+from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, LaneType, read_reply
 
 __all__ = [
     "ConfigError",
@@ -18,6 +18,7 @@ __all__ = [
     "Engine",
     "EngineConfig",
     "EngineStats",
+    "ErrorReply",
     "GpsMeasurement",
     "HdMap",
     "LaasError",
@@ -27,4 +28,5 @@ __all__ = [
     "Mode",
     "Segment",
     "TraceError",
+    "read_reply",
 ]

@@ -420,9 +420,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"laas {args.command}: {exc.filename}: no such file", file=sys.stderr)
         return 2
-    except ValueError as exc:  # pydantic's ValidationError is one
-        print(f"laas {args.command}: {exc}", file=sys.stderr)
-        return 2
     return code
 
 

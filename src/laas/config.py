@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    model_validator,
+)
 
-__all__ = ["EngineConfig", "Mode"]
+from laas.errors import ConfigError
+
+__all__ = ["EngineConfig", "Mode", "Settings"]
 
 Mode = Literal["default", "paper"]
 """`paper`: the joint-hypothesis discrete Bayes filter of the paper (section IV-D).
@@ -17,14 +26,35 @@ NonNegative = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 Probability = Annotated[float, Field(ge=0.0, le=0.5, allow_inf_nan=False)]
 
 
-class EngineConfig(BaseModel):
+class Settings(BaseModel):
+    """A frozen configuration object whose refusals are `ConfigError`s naming each setting.
+
+    >>> EngineConfig(sigma_pos=-1.0)
+    Traceback (most recent call last):
+    ...
+    laas.errors.ConfigError: invalid EngineConfig: sigma_pos: Input should be greater than 0
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _named_refusal(cls, data: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            return handler(data)
+        except ValidationError as exc:
+            found = "; ".join(
+                f"{'.'.join(str(x) for x in e['loc']) or 'value'}: {e['msg']}" for e in exc.errors()
+            )
+            raise ConfigError(f"invalid {cls.__name__}: {found}") from None
+
+
+class EngineConfig(Settings):
     """Everything the positioning engine can be tuned by.
 
     The sensor sigmas describe the receivers (the paper tunes its Kalman filter
     "by approximating the sensor accuracy"); the rest are model constants.
     """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     mode: Mode = "default"
     kalman: bool = Field(default=True, description="smooth each track with a Kalman filter")

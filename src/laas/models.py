@@ -1,16 +1,28 @@
 """The wire formats of LaaS: what a road user sends and what it gets back.
 
-Both are pydantic models in strict mode. They are the only place where untrusted
+A `GpsMeasurement` in; a `CorrectedPosition` or an `ErrorReply` back (`read_reply`
+tells them apart). All are pydantic models in strict mode. They are the only place where untrusted
 input becomes typed values; everything inward takes these objects, never dicts.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-__all__ = ["CorrectedPosition", "GpsMeasurement", "LaneType", "problems"]
+__all__ = [
+    "CorrectedPosition",
+    "ErrorKind",
+    "ErrorReply",
+    "FieldProblem",
+    "GpsMeasurement",
+    "LaneType",
+    "ServiceError",
+    "problems",
+    "read_reply",
+]
 
 LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
 
@@ -71,6 +83,58 @@ class CorrectedPosition(BaseModel):
     accuracy: Annotated[float, Field(ge=0.0)] = Field(description="horizontal 1-sigma, m")
     accuracy_cross: Annotated[float, Field(ge=0.0)] = Field(description="cross-road 1-sigma, m")
     accuracy_along: Annotated[float, Field(ge=0.0)] = Field(description="along-road 1-sigma, m")
+
+
+ErrorKind = Literal["invalid", "clock", "outside", "stale", "internal"]
+"""Why a fix was refused: not a valid measurement; its timestamp too far from the service's
+clock; outside the service area; not newer than the session's last fix; the service failed."""
+
+
+class FieldProblem(BaseModel):
+    """One field of a refused measurement and what is wrong with it."""
+
+    model_config = _STRICT
+
+    field: str
+    problem: str
+
+
+class ServiceError(BaseModel):
+    """Why the service refused one measurement; `message` says what to do."""
+
+    model_config = _STRICT
+
+    kind: ErrorKind
+    message: str
+    fields: tuple[FieldProblem, ...] = ()
+
+
+class ErrorReply(BaseModel):
+    """The reply to a refused measurement: ``{"error": {"kind", "message", "fields"}}``.
+
+    >>> read_reply({"error": {"kind": "stale", "message": "old", "fields": []}}).error.kind
+    'stale'
+    """
+
+    model_config = _STRICT
+
+    error: ServiceError
+
+    @classmethod
+    def of(cls, kind: ErrorKind, message: str, *fields: tuple[str, str]) -> ErrorReply:
+        """An error reply with (field, problem) pairs."""
+        found = tuple(FieldProblem(field=f, problem=p) for f, p in fields)
+        return cls(error=ServiceError(kind=kind, message=message, fields=found))
+
+
+def read_reply(payload: Mapping[str, Any]) -> CorrectedPosition | ErrorReply:
+    """Decode a reply of the service; pydantic's ValidationError if it is neither kind.
+
+    JSON carries lists where the models hold tuples, so replies are read in lax mode.
+    """
+    if "error" in payload:
+        return ErrorReply.model_validate(payload, strict=False)
+    return CorrectedPosition.model_validate(payload)
 
 
 def problems(error: ValidationError, whole: str = "payload") -> list[tuple[str, str]]:

@@ -38,12 +38,12 @@ from dataclasses import dataclass
 from importlib.metadata import version
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
-from laas.config import EngineConfig
+from laas.config import EngineConfig, Settings
 from laas.engine.engine import Engine
 from laas.map.hdmap import HdMap
-from laas.models import CorrectedPosition, GpsMeasurement, problems
+from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, problems
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 
 __all__ = [
@@ -71,10 +71,8 @@ def service_spec() -> ServiceSpec:
     )
 
 
-class WorkerConfig(BaseModel):
+class WorkerConfig(Settings):
     """The worker's limits on its input, validated once at start."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     max_future: float = Field(
         default=120.0, ge=0, description="a session's first fix may lead the clock by, s"
@@ -113,10 +111,6 @@ class WorkerStats:
     failed: int = 0
     expired: int = 0  # pseudonyms forgotten after track_timeout of silence
     evicted: int = 0  # pseudonyms forgotten because max_pseudonyms were held
-
-
-def _error(kind: str, message: str, fields: list[dict[str, str]] | None = None) -> dict[str, Any]:
-    return {"error": {"kind": kind, "message": message, "fields": fields or []}}
 
 
 class LaasService:
@@ -166,28 +160,29 @@ class LaasService:
             self.stats.invalid += 1
             found = problems(exc)
             summary = "; ".join(f"{field}: {problem}" for field, problem in found)
-            fields = [{"field": field, "problem": problem} for field, problem in found]
-            return _error("invalid", f"measurement refused: {summary}", fields)
+            return ErrorReply.of("invalid", f"measurement refused: {summary}", *found).model_dump()
         now = self._wall()
         refusal = self._check_clock(request.pseudonym, measurement.timestamp / 1000.0, now)
         if refusal is None:
             refusal = self._check_area(measurement)
         if refusal is not None:
-            return refusal
+            return refusal.model_dump()
         try:
             answer = self.engine.process(request.pseudonym, measurement)
         except Exception:
             self.stats.failed += 1
             log.exception("the engine failed on a fix")
-            return _error("internal", "the service failed on this fix; it has been logged")
+            return ErrorReply.of(
+                "internal", "the service failed on this fix; it has been logged"
+            ).model_dump()
         self._heard(request.pseudonym, measurement.timestamp / 1000.0, now)
         if answer is None:
             self.stats.refused += 1
-            return _error(
+            return ErrorReply.of(
                 "stale",
                 f"timestamp {measurement.timestamp} is not newer than this session's last fix",
-                [{"field": "timestamp", "problem": "not newer than the last fix"}],
-            )
+                ("timestamp", "not newer than the last fix"),
+            ).model_dump()
         self.stats.answered += 1
         return answer.model_dump()
 
@@ -215,7 +210,7 @@ class LaasService:
             self.engine.forget(gone)
             self.stats.evicted += 1
 
-    def _check_clock(self, pseudonym: str, t: float, now: float) -> dict[str, Any] | None:
+    def _check_clock(self, pseudonym: str, t: float, now: float) -> ErrorReply | None:
         """Refuse a timestamp too far behind the wall clock, or too far ahead of it."""
         c = self.config
         problem = None
@@ -238,13 +233,13 @@ class LaasService:
         if problem is None:
             return None
         self.stats.clock += 1
-        return _error(
+        return ErrorReply.of(
             "clock",
             f"measurement refused: timestamp: {problem}; synchronise the clock",
-            [{"field": "timestamp", "problem": problem}],
+            ("timestamp", problem),
         )
 
-    def _check_area(self, m: GpsMeasurement) -> dict[str, Any] | None:
+    def _check_area(self, m: GpsMeasurement) -> ErrorReply | None:
         """Refuse a fix outside the map's area (plus ``max_distance``)."""
         lon0, lat0, lon1, lat1 = self._area
         if lon0 <= m.longitude <= lon1 and lat0 <= m.latitude <= lat1:
@@ -252,10 +247,11 @@ class LaasService:
         self.stats.outside += 1
         d = self.config.max_distance
         problem = f"more than {d / 1000:g} km outside the service area of map {self._map.source}"
-        return _error(
+        return ErrorReply.of(
             "outside",
             f"measurement refused: latitude/longitude: {problem}",
-            [{"field": "latitude", "problem": problem}, {"field": "longitude", "problem": problem}],
+            ("latitude", problem),
+            ("longitude", problem),
         )
 
 

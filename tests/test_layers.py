@@ -1,0 +1,102 @@
+"""The architecture's rules, checked on the source: what may import what, and the public API."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import laas
+from laas import ConfigError, EngineConfig
+from laas.service import WorkerConfig
+
+SRC = Path(__file__).resolve().parent.parent / "src"
+
+# The engine and the map are pure: no MQTT, no LDM, no pictures, no command line.
+PURE = ("laas/engine", "laas/map")
+FORBIDDEN_IN_PURE = ("ldm", "paho", "amqtt", "matplotlib", "laas.cli", "laas.service", "laas.run")
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module a file imports, lazily or not."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+    return found
+
+
+def _offending(folder: str, forbidden: tuple[str, ...]) -> list[str]:
+    bad = []
+    for path in sorted((SRC / folder).rglob("*.py")):
+        for name in sorted(_imports(path)):
+            if any(name == f or name.startswith(f + ".") for f in forbidden):
+                bad.append(f"{path.relative_to(SRC)} imports {name}")
+    return bad
+
+
+@pytest.mark.parametrize("folder", PURE)
+def test_the_engine_and_the_map_import_no_transport_pictures_or_cli(folder: str) -> None:
+    assert _offending(folder, FORBIDDEN_IN_PURE) == []
+
+
+def test_the_ldm_never_imports_laas() -> None:
+    assert _offending("ldm", ("laas",)) == []
+
+
+def test_paho_lives_in_the_transport_module_only() -> None:
+    users = [
+        str(p.relative_to(SRC))
+        for p in sorted(SRC.rglob("*.py"))
+        if any(n == "paho" or n.startswith("paho.") for n in _imports(p))
+    ]
+    assert users == ["ldm/transport.py"]
+
+
+def test_importing_the_engine_loads_no_transport() -> None:
+    code = (
+        "import sys, laas, laas.engine, laas.map, laas.map.geojson, laas.map.mapgen;"
+        "print(' '.join(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('ldm', 'paho', 'amqtt', 'matplotlib'))))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
+
+
+def test_the_public_api_is_pinned() -> None:
+    assert sorted(laas.__all__) == [
+        "ConfigError",
+        "CorrectedPosition",
+        "Engine",
+        "EngineConfig",
+        "EngineStats",
+        "ErrorReply",
+        "GpsMeasurement",
+        "HdMap",
+        "LaasError",
+        "Lane",
+        "LaneType",
+        "MapError",
+        "Mode",
+        "Segment",
+        "TraceError",
+        "read_reply",
+    ]
+    for name in laas.__all__:
+        assert getattr(laas, name) is not None
+
+
+@pytest.mark.parametrize(
+    ("make", "setting"), [(EngineConfig, "sigma_pos"), (WorkerConfig, "max_past")]
+)
+def test_a_bad_setting_is_a_config_error_that_names_it(make: type, setting: str) -> None:
+    with pytest.raises(ConfigError, match=f"invalid {make.__name__}: {setting}: ") as info:
+        make(**{setting: -1.0})
+    assert isinstance(info.value, laas.LaasError)
+    with pytest.raises(ConfigError, match="colour: Extra inputs are not permitted"):
+        make(colour="red")

@@ -7,8 +7,9 @@
 #    below that is empty there gets a random 24-character password (existing ones are
 #    kept, so running the script again changes nothing).
 # 2. deploy/security/passwd (or $PASSWD_FILE) is created or extended with
-#    deploy/security/make-passwd.sh: one salted hash per account. Other accounts already
-#    in it (your participants, added with make-passwd.sh) are kept.
+#    deploy/security/make-passwd.sh (`ldm passwd`, passwords on its stdin): one salted
+#    hash per account. Other accounts already in it (your participants, added with
+#    make-passwd.sh) are kept.
 #
 # Accounts (variable -> account names):
 #   LDM_CORE_USER_PASSWORD     ldm-core-user      user-cluster core, on broker-user and the backbone
@@ -19,8 +20,8 @@
 #
 # The brokers run as uid 1883 in their containers and read the file through a read-only
 # mount: as root the script gives it to 1883 with mode 0640; otherwise it makes it 0644
-# (hashes only, of random passwords) unless MODE is set. Needs mosquitto_passwd
-# (apt-get install mosquitto) or MOSQUITTO_PASSWD pointing at it.
+# (hashes only, of random passwords) unless MODE is set. Needs the ldm command (see
+# make-passwd.sh), not Mosquitto.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/../.." && pwd)
@@ -63,9 +64,9 @@ for pair in \
 done
 
 if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
-  MODE=0640 "$here/make-passwd.sh" "$passwd" "${entries[@]}"
+  printf '%s\n' "${entries[@]}" | MODE=0640 "$here/make-passwd.sh" "$passwd" -
   chown 1883:1883 "$passwd"
 else
-  MODE=${MODE:-0644} "$here/make-passwd.sh" "$passwd" "${entries[@]}"
+  printf '%s\n' "${entries[@]}" | MODE=${MODE:-0644} "$here/make-passwd.sh" "$passwd" -
 fi
 echo "accounts of docker-compose.yml in $passwd; now: docker compose up -d"

@@ -1,10 +1,13 @@
-"""The `ldm` command line: run a core or an embedded broker until interrupted.
+"""The `ldm` command line: run a core or an embedded broker, or write a password file.
 
     ldm broker --port 1883
     ldm core --name user --cluster mqtt://localhost:1883 --backbone mqtt://hub:1883
+    ldm passwd deploy/security/passwd car-17 bike-42=PASSWORD
 
-Passwords come from environment variables (``--password-env``, default LDM_PASSWORD;
-``--backbone-password-env``, default LDM_BACKBONE_PASSWORD), never from the command line.
+A core's passwords come from environment variables (``--password-env``, default
+LDM_PASSWORD; ``--backbone-password-env``, default LDM_BACKBONE_PASSWORD), never from the
+command line. ``ldm passwd`` reads USER=PASSWORD entries from its arguments or, for the
+entry ``-``, from standard input (out of the process list).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,9 +24,10 @@ from typing import Any
 from ldm.broker import EmbeddedBroker
 from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core import Core
-from ldm.errors import LdmError
+from ldm.errors import LdmError, PasswordFileError
+from ldm.passwd import random_password, set_passwords
 
-__all__ = ["broker_settings", "core_config", "main", "wait_for_signal"]
+__all__ = ["broker_settings", "core_config", "main", "password_entries", "wait_for_signal"]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -67,7 +72,59 @@ def _parser() -> argparse.ArgumentParser:
         help="largest participant message, bytes",
     )
     core.add_argument("--data-qos", type=int, default=0, choices=(0, 1, 2), help="QoS of data")
+
+    passwd = sub.add_parser(
+        "passwd",
+        help="create or extend a Mosquitto password file",
+        description="Create or extend a Mosquitto password file (PBKDF2-SHA512, as "
+        "mosquitto_passwd writes it). Other accounts in FILE are kept; a USER without "
+        "=PASSWORD gets a random password, printed once as USER=PASSWORD.",
+    )
+    passwd.add_argument("file", type=Path, metavar="FILE", help="the password file")
+    passwd.add_argument(
+        "entries",
+        nargs="+",
+        metavar="USER[=PASSWORD]",
+        help="an account; '-' reads such entries from standard input, one per line",
+    )
+    passwd.add_argument(
+        "--mode", type=_octal, default=0o640, help="file mode, octal (default 0640)"
+    )
     return parser
+
+
+def _octal(text: str) -> int:
+    try:
+        mode = int(text, 8)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an octal file mode: {text!r}") from None
+    if not 0 <= mode <= 0o7777:
+        raise argparse.ArgumentTypeError(f"not a file mode: {text!r}")
+    return mode
+
+
+def password_entries(entries: Sequence[str]) -> tuple[dict[str, str], list[str]]:
+    """USER[=PASSWORD] entries -> (passwords by user, users that got a random password).
+
+    The entry ``-`` stands for the non-empty lines of standard input.
+    """
+    lines: list[str] = []
+    for entry in entries:
+        if entry == "-":
+            lines += [line for line in sys.stdin.read().splitlines() if line]
+        else:
+            lines.append(entry)
+    passwords: dict[str, str] = {}
+    generated: list[str] = []
+    for line in lines:
+        user, sep, password = line.partition("=")
+        if user in passwords:
+            raise PasswordFileError(f"user {user!r} is given twice")
+        if not sep:
+            password = random_password()
+            generated.append(user)
+        passwords[user] = password
+    return passwords, generated
 
 
 def broker_settings(
@@ -114,6 +171,22 @@ def wait_for_signal() -> None:
     stop.wait()
 
 
+def _passwd(args: argparse.Namespace) -> int:
+    """`ldm passwd`: errors go to stderr, stdout carries only the generated passwords."""
+    try:
+        passwords, generated = password_entries(args.entries)
+        set_passwords(args.file, passwords, mode=args.mode)
+    except PasswordFileError as exc:
+        print(f"ldm passwd: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"ldm passwd: cannot write {args.file}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    for user in generated:
+        print(f"{user}={passwords[user]}", flush=True)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `ldm` command line and return its exit status."""
     args = _parser().parse_args(argv)
@@ -122,6 +195,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
     try:
+        if args.command == "passwd":
+            return _passwd(args)
         if args.command == "broker":
             broker = EmbeddedBroker(args.host, args.port).start()
             print(f"ldm broker listening on {broker.url}", flush=True)

@@ -7,7 +7,8 @@ LdmError
 ├── SessionError       the core refused or lost a session
 │   └── RequestRejected  the core refused one input (malformed, too large, rate limit)
 ├── RequestTimeout     no reply arrived in time (also a TimeoutError)
-└── CryptoError        a payload could not be decrypted or a key is malformed
+├── CryptoError        a payload could not be decrypted or a key is malformed
+└── PasswordFileError  a user name, password or password file line Mosquitto cannot use
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ __all__ = [
     "ConnectError",
     "CryptoError",
     "LdmError",
+    "PasswordFileError",
     "RequestRejected",
     "RequestTimeout",
     "ServiceNotFound",
@@ -63,3 +65,7 @@ class RequestTimeout(LdmError, TimeoutError):
 
 class CryptoError(LdmError):
     """A payload failed authentication or a key is malformed."""
+
+
+class PasswordFileError(LdmError, ValueError):
+    """A user name, password or password file line is unusable; the message says why."""

@@ -1,10 +1,15 @@
-"""Shared pytest configuration: a report header with the versions that matter."""
+"""Shared pytest configuration: a report header with the versions that matter, and a last
+line that counts the Mosquitto tests skipped because Mosquitto is not installed."""
 
 from __future__ import annotations
 
 import numpy
 import pyproj
+import pytest
 import shapely
+
+_mosquitto_tests: set[str] = set()
+_mosquitto_skipped: set[str] = set()
 
 
 def pytest_report_header() -> list[str]:
@@ -13,3 +18,36 @@ def pytest_report_header() -> list[str]:
         f"(GEOS {shapely.geos_version_string}), "
         f"pyproj {pyproj.__version__} (PROJ {pyproj.proj_version_str})"
     ]
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    _mosquitto_tests.update(i.nodeid for i in items if i.get_closest_marker("mosquitto"))
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.skipped and report.nodeid in _mosquitto_tests:
+        _mosquitto_skipped.add(report.nodeid)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """After pytest's own final line: how many tests need Mosquitto, and how to run them."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    count = len(_mosquitto_skipped)
+    if reporter is not None and count:
+        tests = "test" if count == 1 else "tests"
+        reporter.write_line(
+            f"{count} {tests} skipped: Mosquitto is not installed; run "
+            "`apt-get install -y mosquitto mosquitto-clients` and then `bash scripts/test` "
+            "to run them",
+            yellow=True,
+        )
+
+
+@pytest.fixture(scope="session")
+def hamburg_map():  # -> HdMap (imported here, so this stays an append to the file)
+    """The bundled Hamburg map (`maps/messe-hamburg.geojson`), loaded once per session;
+    found by `bundled_map`, so it does not depend on the current directory."""
+    from laas.map.bundled import bundled_map
+    from laas.map.hdmap import HdMap
+
+    return HdMap.load(bundled_map("messe-hamburg"))

@@ -111,12 +111,10 @@ def test_scenario_and_plot_write_their_files(tmp_path: Path) -> None:
     assert all((tmp_path / p).stat().st_size > 10_000 for p in pngs)
 
 
-def test_bench_filter_reports_both_modes_and_agrees_with_enumeration(
-    capsys: pytest.CaptureFixture[str],
-) -> None:
+def test_bench_filter_reports_both_modes(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench-filter", "--max-users", "10", "--steps", "2", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [r["users"] for r in rows] == [1, 2, 3, 4, 6, 8, 10]
-    assert all(r["default_ms"] > 0 and r["sweep_ms"] > 0 for r in rows)
+    assert all(r["default_ms"] > 0 for r in rows)
+    assert all(r["paper_ms"] > 0 for r in rows[:-1])
     assert rows[-1]["paper_ms"] is None  # 4^10 hypotheses: past the enumeration limit
-    assert all(r["sweep_equals_enumeration"] for r in rows if r["enumeration_ms"] is not None)

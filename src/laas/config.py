@@ -83,19 +83,24 @@ class EngineConfig(Settings):
         default=0.25, description="spread of a user's lateral position about its lane centre, m"
     )
     lane_change_rate: NonNegative = Field(
-        default=0.2,
+        default=0.02,
         description=(
-            "lane changes per second, to each side, that heading does not announce; it is "
-            "also how fast an old lane decision fades, since successive filtered fixes "
-            "share their errors and are weaker evidence than they look"
+            "default mode: lane changes per second, to each side, that lateral motion does "
+            "not announce"
         ),
     )
     filtered_inflation: Annotated[float, Field(ge=1.0, allow_inf_nan=False)] = Field(
         default=2.0,
         description=(
             "default mode, with the Kalman filter on: how much the filtered lateral variance "
-            "is inflated in the lane likelihood, since successive filtered fixes share "
-            "their errors"
+            "is inflated as lane evidence, since successive filtered fixes share their errors"
+        ),
+    )
+    speed_memory: Positive = Field(
+        default=10.0,
+        description=(
+            "default mode: how long (s) a user's speed stays what it was; the speed's "
+            "evidence about lane types counts once per this many seconds, not once per fix"
         ),
     )
     max_lane_change: Probability = Field(
@@ -107,6 +112,13 @@ class EngineConfig(Settings):
         default=1 << 20,
         description="paper mode: users beyond this many joint hypotheses (L^N) are placed alone",
     )
+    paper_lane_change_rate: NonNegative = Field(
+        default=0.2,
+        description=(
+            "paper mode: lane changes per second, to each side, that heading does not "
+            "announce; also how fast an old lane decision fades"
+        ),
+    )
 
     # Default mode: the common GNSS error, a 2-D random walk per area.
     bias_prior: Positive = Field(
@@ -117,9 +129,6 @@ class EngineConfig(Settings):
     )
     bias_area: Positive = Field(
         default=2_000.0, description="size of the area that shares one common error, m"
-    )
-    max_group: Annotated[int, Field(ge=1)] = Field(
-        default=32, description="default mode: most users in one joint lane search"
     )
     bias_resolution: Positive = Field(
         default=0.3, description="cell size of the common error's grid posterior, m"

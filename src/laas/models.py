@@ -56,7 +56,10 @@ class GpsMeasurement(BaseModel):
     speed: Annotated[float, Field(ge=0.0, le=150.0)] = Field(description="ground speed, m/s")
     accuracy: Annotated[float, Field(gt=0.0, le=10_000.0)] | None = Field(
         default=None,
-        description="the receiver's own 1-sigma horizontal accuracy estimate, m, if it gives one",
+        description=(
+            "the receiver's own 1-sigma horizontal accuracy estimate, m (the radius: per axis "
+            "it is accuracy / sqrt 2), if it gives one"
+        ),
     )
 
 

@@ -1,25 +1,21 @@
-"""Default mode: the GNSS error that nearby receivers share, estimated cooperatively.
+"""The GNSS error that nearby receivers share: a grid posterior per area.
 
 Receivers close together see almost the same satellite and atmosphere errors, so every
-filtered fix is p_i = x_i + b + n_i with one common error b per area, a slowly drifting
-2-D random walk (b_k = b_{k-1} + w, w ~ N(0, q dt I)).
+fix is p_i = x_i + b + e_i with one common error b per area, a slowly drifting 2-D
+random walk (b_k = b_{k-1} + w, w ~ N(0, q dt I)).
 
-A user on a lane observes b only across that lane. With n the unit normal of the road at
-the user, d(b) = n . (p - b) its lateral offset once b is removed, o_l the lane centres
-and pi_l the user's lane probabilities, one fix has the likelihood
+A user on a road observes b only across it: its evidence is a function of u = n . b,
+with n the road's unit normal at the user. Such evidence can be many-peaked (one peak
+per lane the user might be on), so the posterior of b is kept on a grid (a point-mass
+filter: the discrete Bayes filter of the paper, applied to the common error):
 
-    L(b) = eps + sum_l pi_l N(d(b) - o_l; 0, s^2)
-
-which does not pick a lane: it keeps every lane the user might be on (and eps, a user off
-every lane). A Gaussian filter would have to pick one and can lock onto a wrong lane for
-good, so the posterior of b is kept on a grid (a point-mass filter, the discrete Bayes
-filter of the paper applied to the common error):
-
-    log p(b) <- log p(b) + log L(b)        prediction: a blur of variance q dt
+    log p(b) <- log p(b) + log c(n . b)      update: c is given on a 1-D grid of u
+    p(b)     <- p(b) * blur(q dt)             prediction: the random walk
 
 Across one straight road the posterior is a ridge along the road: nothing is corrected
 along it until some user drives a road of another direction, and the covariance of b
-says so (and with it every answer's along-road accuracy).
+says so (and with it every answer's along-road accuracy). `UGrid` is the 1-D grid of
+u = n . b shared by every direction n, and `project` gives the posterior of u.
 """
 
 from __future__ import annotations
@@ -28,10 +24,24 @@ import math
 
 import numpy as np
 
-__all__ = ["CommonError", "CommonErrorField"]
+__all__ = ["CommonError", "CommonErrorField", "UGrid"]
 
-_OFF_LANE = 1e-3  # eps: the likelihood floor of a user on no lane at all (a car park, say)
+_U_STEP = 0.1  # m: cell of the 1-D grid of u = n . b, well below any lane-evidence width
 _DROP = 40.0  # cells this far below the maximum in log p hold no mass worth keeping
+
+
+class UGrid:
+    """A 1-D grid of u = n . b: `size` cells of width `step` from `lo` (cell centres)."""
+
+    def __init__(self, half: float, step: float) -> None:
+        self.step = step
+        self.size = math.ceil(2.0 * half / step) + 1
+        self.lo = -half
+        self.values = self.lo + step * np.arange(self.size)
+
+    def index(self, u: np.ndarray) -> np.ndarray:
+        """The cell of each u (clipped to the grid)."""
+        return np.clip(((u - self.lo) / self.step + 0.5).astype(np.intp), 0, self.size - 1)
 
 
 class CommonError:
@@ -53,6 +63,7 @@ class CommonError:
         sq = self._axis**2
         self._log = -0.5 * (sq[:, None] + sq[None, :]) / prior_sigma**2  # (n, n): [east, north]
         self._win = (0, n, 0, n)
+        self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
         self._drift_var = drift**2
         self._pending_var = 0.0
         self.t: float | None = None
@@ -62,18 +73,23 @@ class CommonError:
         self._moments()
 
     def _moments(self) -> None:
-        """b = E[b], P = Cov[b] over the window (plus the cell's own spread, res^2 / 12)."""
+        """b = E[b], P = Cov[b] over the window."""
         i0, i1, j0, j1 = self._win
         w = np.exp(self._log[i0:i1, j0:j1])
-        w /= w.sum()
+        self.b, self.P = self._stats(w / w.sum())
+
+    def _stats(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of b under window weights w (summing to 1), plus each
+        cell's own spread res^2 / 12."""
+        i0, i1, j0, j1 = self._win
         ae, an = self._axis[i0:i1], self._axis[j0:j1]
         we, wn = w.sum(axis=1), w.sum(axis=0)
         me, mn = float(we @ ae), float(wn @ an)
         cee = float(we @ (ae - me) ** 2)
         cnn = float(wn @ (an - mn) ** 2)
         cen = float((ae - me) @ w @ (an - mn))
-        self.b = np.array([me, mn])
-        self.P = np.array([[cee, cen], [cen, cnn]]) + np.eye(2) * self._res**2 / 12.0
+        cov = np.array([[cee, cen], [cen, cnn]]) + np.eye(2) * self._res**2 / 12.0
+        return np.array([me, mn]), cov
 
     def _shrink(self) -> None:
         """Drop the window's edges that hold no mass; keep two cells of margin."""
@@ -114,33 +130,38 @@ class CommonError:
         if self.t is None or t > self.t:
             self.t = t
 
-    def update(
-        self,
-        normal: np.ndarray,
-        d0: float,
-        offsets: np.ndarray,
-        weights: np.ndarray,
-        sigma: float,
-    ) -> None:
-        """Fold in one fix: lateral offset d0 with b = 0, lanes at `offsets` with `weights`.
+    def weights_and_cells(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(window weights p(b), the u-grid cell of n . b for each window cell)."""
+        i0, i1, j0, j1 = self._win
+        w = np.exp(self._log[i0:i1, j0:j1])
+        w /= w.sum()
+        proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
+        return w, self.u.index(proj)
 
-        d(b) = d0 - n . b for every grid cell; the mixture is evaluated on a fine 1-D grid
-        of n . b and gathered, so an update costs one pass over the window.
-        """
+    def project(self, normal: np.ndarray) -> np.ndarray:
+        """The posterior of u = n . b on the u-grid: p_u[k] = sum of p(b) over n . b in k."""
+        w, idx = self.weights_and_cells(normal)
+        return np.bincount(idx.ravel(), weights=w.ravel(), minlength=self.u.size)
+
+    def update(self, normal: np.ndarray, log_c: np.ndarray) -> None:
+        """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b]."""
         i0, i1, j0, j1 = self._win
         proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
-        lo, hi = float(proj.min()), float(proj.max())
-        step = min(self._res, sigma) / 4.0
-        u = np.arange(lo, hi + step, step)
-        r = (d0 - u)[:, None] - offsets[None, :]
-        mix = (np.exp(-0.5 * (r / sigma) ** 2) * weights[None, :]).sum(axis=1)
-        like = np.log(_OFF_LANE + mix / (math.sqrt(2 * math.pi) * sigma))
-        idx = np.minimum(((proj - lo) / step + 0.5).astype(np.intp), u.size - 1)
-        sub = self._log[i0:i1, j0:j1] + like[idx]
+        sub = self._log[i0:i1, j0:j1] + log_c[self.u.index(proj)]
         self._log[i0:i1, j0:j1] = sub - sub.max()
         self.updates += 1
         self._shrink()
         self._moments()
+
+    def conditional(self, normal: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of b under p(b) weight[cell of n . b] (weight on the u-grid):
+        the common error given what is known about u, for example a user's lane."""
+        w, idx = self.weights_and_cells(normal)
+        w = w * weight[idx]
+        total = float(w.sum())
+        if not total > 0.0:
+            return self.b.copy(), self.P.copy()
+        return self._stats(w / total)
 
     def sigma_along(self, direction: np.ndarray) -> float:
         """1-sigma of b along a unit direction, m."""

@@ -20,9 +20,17 @@ leaves is summed out, so what is known about the others is kept.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
-__all__ = ["JointHypothesisFilter"]
+from laas.config import EngineConfig
+from laas.engine.lanefilter import LaneFilter, Placement
+from laas.engine.tracking import Track
+from laas.engine.transition import lane_prediction
+from laas.map.hdmap import Segment
+
+__all__ = ["JointHypothesisFilter", "PaperLaneFilter"]
 
 
 class JointHypothesisFilter:
@@ -118,3 +126,124 @@ class JointHypothesisFilter:
         winner = np.unravel_index(int(np.argmax(self.belief)), self.belief.shape)
         lane = int(winner[k])
         return lane, float(self.marginal(user)[lane])
+
+
+@dataclass
+class _Place:
+    """Where a user was in its segment at its own last step."""
+
+    t: float
+    p: np.ndarray  # (2,) filtered position
+    v: np.ndarray  # (2,) velocity
+    s: float
+    d: float
+    offsets: np.ndarray
+    normal: np.ndarray
+    lateral_var: float
+
+    def at(self, t: float) -> tuple[np.ndarray, float]:
+        """(position, lateral offset) predicted to time t at constant velocity:
+        p(t) = p + v (t - t_k),  d(t) = d + (v . n)(t - t_k)."""
+        dt = t - self.t
+        return self.p + self.v * dt, self.d + float(self.v @ self.normal) * dt
+
+
+@dataclass
+class _Group:
+    """The users currently in one segment and their joint belief."""
+
+    joint: JointHypothesisFilter
+    users: set[str] = field(default_factory=set)
+
+
+class PaperLaneFilter(LaneFilter):
+    """Section IV-D: one joint-hypothesis filter per road element. The common error is
+    never estimated: b = 0 with the prior's covariance."""
+
+    def __init__(self, config: EngineConfig) -> None:
+        super().__init__(config)
+        self._groups: dict[str, _Group] = {}
+        self._segment: dict[str, str] = {}  # user -> segment id of its group
+        self._places: dict[str, _Place] = {}
+        self._seen: dict[str, float] = {}  # user -> time of its last step
+        self._prior = np.eye(2) * config.bias_prior**2
+
+    def correction(self, position: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(2), self._prior
+
+    def leave(self, user: str) -> None:
+        self._take_out(user)
+
+    def _take_out(self, user: str) -> np.ndarray | None:
+        """Take `user` out of its group; return its lane belief there."""
+        seg_id = self._segment.pop(user, None)
+        self._places.pop(user, None)
+        self._seen.pop(user, None)
+        if seg_id is None:
+            return None
+        group = self._groups[seg_id]
+        group.users.discard(user)
+        belief = group.joint.remove(user) if user in group.joint else None
+        if not group.users:
+            del self._groups[seg_id]
+        return belief
+
+    def _join(self, user: str, segment: Segment) -> _Group:
+        carried = self._take_out(user)
+        if carried is not None and carried.shape[0] != len(segment.lanes):
+            carried = None
+        group = self._groups.get(segment.id)
+        if group is None:
+            joint = JointHypothesisFilter(len(segment.lanes), self.config.max_hypotheses)
+            group = self._groups[segment.id] = _Group(joint)
+        group.users.add(user)
+        group.joint.add(user, carried)
+        self._segment[user] = segment.id
+        return group
+
+    def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
+        """Predict and update the joint hypotheses of u's segment; place u on its lane."""
+        c = self.config
+        if self._segment.get(user) != segment.id:
+            group = self._join(user, segment)
+        else:
+            group = self._groups[segment.id]
+        # The group's users heard from within group_timeout; the stale ones leave it.
+        for v in [v for v in group.users if v != user]:
+            if t - self._seen[v] > c.group_timeout:
+                self._take_out(v)
+        p = track.position
+        s, d = segment.frame(float(p[0]), float(p[1]))
+        tangent = segment.tangent(s)
+        normal = np.array([tangent[1], -tangent[0]])
+        offsets = segment.lane_offsets(s)
+        lateral_var = float(normal @ track.position_cov @ normal)
+        self._places[user] = _Place(t, p, track.velocity, s, d, offsets, normal, lateral_var)
+        self._seen[user] = track.t
+        transition, direction = lane_prediction(
+            offsets,
+            tuple(lane.direction for lane in segment.lanes),
+            track.velocity,
+            normal,
+            tangent,
+            track.dt,
+            c.paper_lane_change_rate,
+            c.max_lane_change,
+        )
+        # c_v[l] = p_v + (o_l - d_v) n_v: each user's filtered fix moved across onto lane l.
+        placed: dict[str, np.ndarray] = {}
+        positions: dict[str, np.ndarray] = {}
+        pair_var: dict[str, float] = {}
+        base = 2.0 * c.sigma_lane**2 + lateral_var
+        for v in [user, *sorted(v for v in group.users if v != user)]:
+            place = self._places.get(v)
+            if place is None:
+                continue
+            pos, dv = place.at(t)
+            placed[v] = pos + np.outer(place.offsets - dv, place.normal)
+            positions[v] = pos
+            pair_var[v] = base + place.lateral_var
+        lane, probability = group.joint.step(
+            user, transition, direction, placed, positions, pair_var
+        )
+        return Placement(lane, probability, placed[user][lane], self._prior, c.sigma_lane)

@@ -44,6 +44,7 @@ class Fix:
     n: float
     speed: float
     heading: float
+    accuracy: float | None = None  # the receiver's own 1-sigma per axis, m, if it gives one
 
     @property
     def velocity(self) -> np.ndarray:
@@ -72,7 +73,8 @@ class Track:
         sigma_h = math.radians(c.sigma_heading)
         r_v = c.sigma_vel**2 * np.outer(t, t) + (fix.speed * sigma_h) ** 2 * np.outer(nrm, nrm)
         r = np.zeros((4, 4))
-        r[0, 0] = r[1, 1] = c.sigma_pos**2
+        sigma_pos = fix.accuracy if fix.accuracy is not None else c.sigma_pos
+        r[0, 0] = r[1, 1] = sigma_pos**2
         r[2:, 2:] = r_v + _MIN_VELOCITY_VAR * np.eye(2)
         return r
 

@@ -12,15 +12,42 @@ time since its last fix, the lateral drift toward the right is  u = (v . n) dt  
 where g is the distance between the two lane centres. A lane whose permitted direction
 opposes the user's motion gets the likelihood `wrong_way` (a user moving at walking
 speed or less is not judged).
+
+Each lane type also bounds how fast its users move (`speed_likelihood`): nobody walks
+a sidewalk at 10 m/s and no car parks at 15 m/s. With v the fix's speed and v_max,
+v_width and floor the type's limits below,
+
+    S_type(v) = floor + (1 - floor) / (1 + exp((v - v_max) / v_width))
+
+so a lane is judged only by speeds its own users do not reach. The limits are facts
+about road users, not fitted constants: walking and jogging stay under about 3 m/s and
+cyclists who ride a sidewalk under about 5 m/s; a parking lane is a manoeuvre or, when
+free, a cyclist's lane (under about 7 m/s); cycling, e-bikes included, stays under
+about 12 m/s; a driving lane takes every speed (cars stop, and slow users share it).
+What the limits rule out is a car at speed on a sidewalk, a parking or a bicycle lane.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["direction_likelihood", "lane_transition"]
+__all__ = [
+    "SPEED_LIMITS",
+    "direction_likelihood",
+    "lane_prediction",
+    "lane_transition",
+    "speed_likelihood",
+]
 
 _MOVING = 1.5  # m/s: below this a heading says little about the direction of travel
+
+SPEED_LIMITS: dict[str, tuple[float, float, float]] = {
+    # lane type: (v_max m/s, v_width m/s, floor)
+    "sidewalk": (5.0, 0.8, 0.05),
+    "parking": (7.0, 1.0, 0.02),
+    "bicycle": (12.0, 1.5, 0.02),
+}
+"""How fast a lane type's own users move; types not listed take every speed."""
 
 
 def lane_transition(
@@ -62,3 +89,35 @@ def direction_likelihood(
         if direction == against:
             out[i] = wrong_way
     return out
+
+
+def speed_likelihood(types: tuple[str, ...], speed: float) -> np.ndarray:
+    """(L,) factor per lane: how plausible a fix at `speed` (m/s) is on each lane type.
+
+    >>> speed_likelihood(("driving", "sidewalk"), 12.0).round(3).tolist()
+    [1.0, 0.05]
+    """
+    out = np.ones(len(types))
+    for i, kind in enumerate(types):
+        limit = SPEED_LIMITS.get(kind)
+        if limit is not None:
+            v_max, width, floor = limit
+            z = min((speed - v_max) / width, 50.0)
+            out[i] = floor + (1.0 - floor) / (1.0 + np.exp(z))
+    return out
+
+
+def lane_prediction(
+    offsets: np.ndarray,
+    directions: tuple[str, ...],
+    velocity: np.ndarray,
+    normal: np.ndarray,
+    tangent: np.ndarray,
+    dt: float,
+    rate: float,
+    p_max: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A user's own step: (T[from, to], wrong-way factor per lane) from its velocity
+    across (v . n) and along (v . t) the road."""
+    transition = lane_transition(offsets, float(velocity @ normal), dt, rate, p_max)
+    return transition, direction_likelihood(directions, float(velocity @ tangent))

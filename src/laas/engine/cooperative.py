@@ -1,0 +1,215 @@
+"""Default mode: the common GNSS error and every user's lane, estimated jointly.
+
+Each fix is p_i = x_i + b + e_i: the true position, the error b that every receiver of
+the area shares (`CommonError`, a grid posterior), and the receiver's own error. A user
+on lane l of a road with unit normal n (to the right) and lane centres o_l lies at
+lateral offset o_l, so its filtered position's offset d_i, measured with b = 0, is
+
+    d_i = o_l + u + e,   u = n . b,   e ~ N(0, s^2),   s^2 = s_lane^2 + k n' P_i n
+
+with P_i the covariance of the user's Kalman-filtered position and k > 1 because
+successive filtered fixes share their errors (`filtered_inflation`).
+
+Which lane a user is on and what b is explain the same fixes: moving b by a lane width
+and every user by one lane fits them as well. They are therefore estimated together,
+as a Rao-Blackwellised point-mass filter: b on a grid, and for each user its lane
+probabilities *given* b, alpha_i(u, l) = P(l_i = l | u = n . b, fixes of i), on a 1-D
+grid of u. Given b the users' lanes are independent Markov chains, so one fix of user i
+does, exactly:
+
+    prediction   a(u, l) = sum_k alpha_i(u, k) T[k, l] * D[l] * S[l]^(dt / tau)
+                 (T: lane changes, announced by lateral motion; D: a lane whose
+                 direction opposes the motion; S: a lane type whose users never move
+                 at the fix's speed, counted once per tau = speed_memory seconds
+                 since speed is a lasting trait of a user; see `transition`)
+    evidence     c(u)    = sum_l a(u, l) (eps + N(d_i - u - o_l; 0, s^2))
+    common error log p(b) += log c(n . b)
+    lanes        alpha_i(u, l) = a(u, l) (eps + N(d_i - u - o_l; 0, s^2)) / c(u)
+
+The slide this prevents: when one user changes lanes, "b moved by a lane width" would
+need every other user to have changed lanes at that moment too, which their own
+alpha_j (sharp, since lanes persist) makes improbable; "one user changed lanes" costs
+only that user's lane-change probability. eps keeps a fix off every lane (an outlier,
+a car park) from ruling anything out.
+
+A user's answer: its lane l* = argmax_l sum_u p(u) alpha_i(u, l), with p(u) the
+posterior of u = n . b; the common error given that lane, b* = E[b | l*], removed from
+its filtered position; and the lateral offset fused with the lane centre,
+
+    d = (o_l* / s_lane^2 + d_m / s_m^2) / (1 / s_lane^2 + 1 / s_m^2),
+    s_m^2 = n' (P_track + P_b*) n.
+
+A user's table is tied to the normal it was built for. When the road turns under the
+user, or it enters another road element, the table is carried over through the
+posterior of b: alpha'(u', l') = E[alpha(n . b, l) M[l, l'] | n' . b = u'], with M the
+lane each old lane leads to (the nearest lane at the same place).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from laas.config import EngineConfig
+from laas.engine.common_error import CommonError, CommonErrorField
+from laas.engine.lanefilter import LaneFilter, Placement
+from laas.engine.tracking import Track
+from laas.engine.transition import lane_prediction, speed_likelihood
+from laas.map.hdmap import Segment
+
+__all__ = ["CooperativeLaneFilter"]
+
+_OFF_LANE = 1e-3  # eps, per metre: a fix that fits no lane (an outlier, a car park)
+_TURN = math.radians(2.0)  # rebuild a user's table when its road has turned this much
+_CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new element
+
+
+@dataclass
+class _Lanes:
+    """One user's lane probabilities given the common error, in one road element."""
+
+    segment: Segment
+    area: CommonError
+    normal: np.ndarray  # (2,) the road normal the table is conditioned on
+    alpha: np.ndarray  # (U, L): P(lane | u = normal . b) on the area's u-grid
+
+
+class CooperativeLaneFilter(LaneFilter):
+    """The default mode's lane filter (see the module docstring)."""
+
+    def __init__(self, config: EngineConfig) -> None:
+        super().__init__(config)
+        self._errors = CommonErrorField(
+            config.bias_area, config.bias_prior, config.bias_drift, config.bias_resolution
+        )
+        self._lanes: dict[str, _Lanes] = {}
+
+    def common_errors(self) -> list[CommonError]:
+        return list(self._errors.areas)
+
+    def correction(self, position: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        area = self._errors.at(position)
+        area.predict(t)
+        return area.b, area.P
+
+    def leave(self, user: str) -> None:
+        self._lanes.pop(user, None)
+
+    def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
+        c = self.config
+        area = self._errors.at(track.position)
+        p = track.position
+        s_f, d_f = segment.frame(float(p[0]), float(p[1]))
+        tangent = segment.tangent(s_f)
+        normal = np.array([tangent[1], -tangent[0]])
+        offsets = segment.lane_offsets(s_f)
+        alpha = self._table(user, segment, area, normal, track.position)
+
+        # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] D[l] S[l]
+        transition, direction = lane_prediction(
+            offsets,
+            tuple(lane.direction for lane in segment.lanes),
+            track.velocity,
+            normal,
+            tangent,
+            track.dt,
+            c.lane_change_rate,
+            c.max_lane_change,
+        )
+        types = tuple(lane.type for lane in segment.lanes)
+        # The speed is a lasting trait of the user, not news at every fix: its evidence
+        # counts once per speed_memory seconds, S^(dt / speed_memory).
+        memory = min(1.0, track.dt / c.speed_memory)
+        speed = speed_likelihood(types, track.last_fix.speed) ** memory
+        a = (alpha @ transition) * (direction * speed)
+
+        # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
+        # s^2 = s_lane^2 + k n'P n. Successive filtered fixes share their errors, so each
+        # counts as weaker evidence than its covariance says (k = filtered_inflation; a
+        # raw fix, the Kalman filter off, has independent noise and k = 1).
+        k = c.filtered_inflation if c.kalman else 1.0
+        s = math.sqrt(c.sigma_lane**2 + k * float(normal @ track.position_cov @ normal))
+        r = (d_f - area.u.values)[:, None] - offsets[None, :]
+        like = _OFF_LANE + np.exp(-0.5 * (r / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
+        joint = a * like
+        c_u = joint.sum(axis=1)
+        area.update(normal, np.log(np.maximum(c_u, 1e-300)))
+        alpha = joint / np.maximum(c_u, 1e-300)[:, None]
+        self._lanes[user] = _Lanes(segment, area, normal, alpha)
+
+        # The lane: the marginal over u; the common error given that lane.
+        marginal = area.project(normal) @ alpha
+        marginal /= marginal.sum()
+        lane = int(np.argmax(marginal))
+        b, cov = area.conditional(normal, alpha[:, lane])
+
+        # Place u: its filtered position, b removed, fused with the lane centre.
+        p = track.position - b
+        s_now, d_now = segment.frame(float(p[0]), float(p[1]))
+        t_now = segment.tangent(s_now)
+        n_now = np.array([t_now[1], -t_now[0]])
+        o = float(segment.lane_offsets(s_now)[lane])
+        var_m = float(n_now @ (track.position_cov + cov) @ n_now)
+        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
+        fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
+        cross = math.sqrt(1.0 / (w_lane + w_m))
+        point = np.array(segment.point(s_now, fused))
+        return Placement(lane, float(marginal[lane]), point, cov, cross)
+
+    def _table(
+        self,
+        user: str,
+        segment: Segment,
+        area: CommonError,
+        normal: np.ndarray,
+        position: np.ndarray,
+    ) -> np.ndarray:
+        """The user's alpha for `segment` and `normal`: kept, carried over, or new."""
+        lanes = len(segment.lanes)
+        old = self._lanes.get(user)
+        if old is None or old.area is not area:
+            return np.full((area.u.size, lanes), 1.0 / lanes)
+        alpha = old.alpha
+        if old.segment is not segment:
+            alpha = alpha @ _lane_map(old.segment, segment, position - area.b)
+            alpha = (1.0 - _CARRY_MIX) * alpha + _CARRY_MIX / lanes
+        elif float(old.normal @ normal) > math.cos(_TURN):
+            return alpha
+        return _reproject(area, alpha, old.normal, normal)
+
+
+def _lane_map(old: Segment, new: Segment, q: np.ndarray) -> np.ndarray:
+    """M[l, l'] = 1 where old lane l, at the station of point q, lies nearest new lane l'."""
+    s_old, _ = old.frame(float(q[0]), float(q[1]))
+    s_old = min(max(s_old, 0.0), old.length)
+    m = np.zeros((len(old.lanes), len(new.lanes)))
+    for lane, o in enumerate(old.lane_offsets(s_old)):
+        x, y = old.point(s_old, float(o))
+        s_new, d_new = new.frame(x, y)
+        m[lane, int(np.argmin(np.abs(new.lane_offsets(s_new) - d_new)))] = 1.0
+    return m
+
+
+def _reproject(
+    area: CommonError, alpha: np.ndarray, n_old: np.ndarray, n_new: np.ndarray
+) -> np.ndarray:
+    """alpha'(u', l) = E[alpha(n_old . b, l) | n_new . b = u'] under the posterior of b;
+    where no mass lies, the user's marginal lane probabilities."""
+    w, idx_old = area.weights_and_cells(n_old)
+    _, idx_new = area.weights_and_cells(n_new)
+    flat_new, flat_w = idx_new.ravel(), w.ravel()
+    rows = alpha[idx_old.ravel()] * flat_w[:, None]  # (cells, L)
+    size = area.u.size
+    num = np.stack(
+        [np.bincount(flat_new, weights=rows[:, k], minlength=size) for k in range(alpha.shape[1])],
+        axis=1,
+    )
+    den = np.bincount(flat_new, weights=flat_w, minlength=size)
+    marginal = num.sum(axis=0)
+    marginal = marginal / marginal.sum()
+    out = np.tile(marginal, (size, 1))
+    held = den > 1e-12
+    out[held] = num[held] / den[held, None]
+    return out

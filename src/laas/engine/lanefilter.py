@@ -1,0 +1,66 @@
+"""The lane filter: how the engine places a user on the lanes of its road element.
+
+The engine keeps each user's track and finds its road element; a `LaneFilter` does the
+rest. Two implement it: `PaperLaneFilter` (the paper's joint-hypothesis filter, section
+IV-D) and `CooperativeLaneFilter` (the default: the common GNSS error and every user's
+lane estimated jointly). `make_lane_filter` picks one by `EngineConfig.mode`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from laas.config import EngineConfig
+from laas.engine.common_error import CommonError
+from laas.engine.tracking import Track
+from laas.map.hdmap import Segment
+
+__all__ = ["LaneFilter", "Placement", "make_lane_filter"]
+
+
+@dataclass(frozen=True, slots=True)
+class Placement:
+    """A user placed on a lane: the answer before it is turned into WGS84."""
+
+    lane: int
+    probability: float  # P(lane)
+    point: np.ndarray  # (2,) UTM position on the lane, common error removed
+    common_cov: np.ndarray  # (2, 2) covariance of the common error removed, m^2
+    cross: float  # 1-sigma across the road, m
+
+
+class LaneFilter(ABC):
+    """Places users on lanes; holds whatever state the method needs between fixes."""
+
+    def __init__(self, config: EngineConfig) -> None:
+        self.config = config
+
+    @abstractmethod
+    def correction(self, position: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The common error to remove at `position` at time t, and its covariance."""
+
+    @abstractmethod
+    def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
+        """Place `user`, whose track has just taken a fix at time t, in `segment`."""
+
+    @abstractmethod
+    def leave(self, user: str) -> None:
+        """Forget `user`'s lane state (off the map, track restarted, forgotten)."""
+
+    def common_errors(self) -> list[CommonError]:
+        """The common-error estimates per area (none unless the method keeps them)."""
+        return []
+
+
+def make_lane_filter(config: EngineConfig) -> LaneFilter:
+    """The lane filter of `config.mode`."""
+    if config.mode == "paper":
+        from laas.engine.paper import PaperLaneFilter
+
+        return PaperLaneFilter(config)
+    from laas.engine.cooperative import CooperativeLaneFilter
+
+    return CooperativeLaneFilter(config)

@@ -64,6 +64,8 @@ class CommonError:
         self._log = -0.5 * (sq[:, None] + sq[None, :]) / prior_sigma**2  # (n, n): [east, north]
         self._win = (0, n, 0, n)
         self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
+        self._cells_key: tuple[object, ...] = ()
+        self._cells_idx = np.zeros((0, 0), dtype=np.intp)
         self._drift_var = drift**2
         self._pending_var = 0.0
         self.t: float | None = None
@@ -73,10 +75,11 @@ class CommonError:
         self._moments()
 
     def _moments(self) -> None:
-        """b = E[b], P = Cov[b] over the window."""
+        """The window's weights p(b), b = E[b] and P = Cov[b]."""
         i0, i1, j0, j1 = self._win
         w = np.exp(self._log[i0:i1, j0:j1])
-        self.b, self.P = self._stats(w / w.sum())
+        self._w = w / w.sum()
+        self.b, self.P = self._stats(self._w)
 
     def _stats(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of b under window weights w (summing to 1), plus each
@@ -132,11 +135,16 @@ class CommonError:
 
     def weights_and_cells(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(window weights p(b), the u-grid cell of n . b for each window cell)."""
-        i0, i1, j0, j1 = self._win
-        w = np.exp(self._log[i0:i1, j0:j1])
-        w /= w.sum()
-        proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
-        return w, self.u.index(proj)
+        return self._w, self._cells(normal)
+
+    def _cells(self, normal: np.ndarray) -> np.ndarray:
+        """The u-grid cell of n . b for each window cell (kept while the window and n are)."""
+        key = (self._win, float(normal[0]), float(normal[1]))
+        if key != self._cells_key:
+            i0, i1, j0, j1 = self._win
+            proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
+            self._cells_key, self._cells_idx = key, self.u.index(proj)
+        return self._cells_idx
 
     def project(self, normal: np.ndarray) -> np.ndarray:
         """The posterior of u = n . b on the u-grid: p_u[k] = sum of p(b) over n . b in k."""
@@ -146,8 +154,7 @@ class CommonError:
     def update(self, normal: np.ndarray, log_c: np.ndarray) -> None:
         """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b]."""
         i0, i1, j0, j1 = self._win
-        proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
-        sub = self._log[i0:i1, j0:j1] + log_c[self.u.index(proj)]
+        sub = self._log[i0:i1, j0:j1] + log_c[self._cells(normal)]
         self._log[i0:i1, j0:j1] = sub - sub.max()
         self.updates += 1
         self._shrink()
@@ -156,8 +163,7 @@ class CommonError:
     def conditional(self, normal: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of b under p(b) weight[cell of n . b] (weight on the u-grid):
         the common error given what is known about u, for example a user's lane."""
-        w, idx = self.weights_and_cells(normal)
-        w = w * weight[idx]
+        w = self._w * weight[self._cells(normal)]
         total = float(w.sum())
         if not total > 0.0:
             return self.b.copy(), self.P.copy()

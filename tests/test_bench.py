@@ -19,7 +19,7 @@ from laas.sim.scenario import ErrorModel, simulate
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-def test_bench_runs_end_to_end_on_the_embedded_broker() -> None:
+def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> None:
     lines: list[str] = []
     config = BenchConfig(
         participants=4,
@@ -31,7 +31,7 @@ def test_bench_runs_end_to_end_on_the_embedded_broker() -> None:
         privacy_speedup=50.0,
     )
     scenario = bench_scenario(4, rate=2.0, duration=2.0)
-    fixes = len(simulate(HdMap.load(scenario.map), scenario, ErrorModel(), seed=0).fixes)
+    fixes = len(simulate(hamburg_map, scenario, ErrorModel(), seed=0).fixes)
     report = run_bench(config, progress=lines.append)
 
     assert report.brokers == "embedded-process"
@@ -62,10 +62,9 @@ def test_bench_runs_end_to_end_on_the_embedded_broker() -> None:
     assert any("sessions open" in line for line in lines)
 
 
-def test_bench_participants_stay_on_the_road() -> None:
+def test_bench_participants_stay_on_the_road(hamburg_map: HdMap) -> None:
     scenario = bench_scenario(50, rate=1.0, duration=300.0, seed=3)
-    hdmap = HdMap.load(scenario.map)
-    trace = simulate(hdmap, scenario, ErrorModel(), seed=3)  # raises if one drives off
+    trace = simulate(hamburg_map, scenario, ErrorModel(), seed=3)  # raises if one drives off
     assert len({f.user for f in trace.fixes}) == 50
     assert len(trace.fixes) >= 50 * 300
     assert {f.lane for f in trace.fixes if f.kind == "bicycle"} == {3}

@@ -22,11 +22,13 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from laas.errors import MapError, TraceError
 from laas.map.hdmap import HdMap
+from laas.models import GpsMeasurement
 from laas.service import LaasService
-from laas.sim.trace import read_trace
+from laas.sim.trace import TraceLine, read_trace
 from ldm import Core, KeyPair, LdmError, Participant, Provider, Request, ServiceSpec
 from ldm.crypto import aad
 from ldm.messages import (
@@ -462,8 +464,8 @@ def test_participant_decoders(
 
 
 @pytest.fixture(scope="module")
-def worker() -> LaasService:
-    return LaasService(HdMap.load("maps/messe-hamburg.geojson"))
+def worker(hamburg_map: HdMap) -> LaasService:
+    return LaasService(hamburg_map)
 
 
 def fix(t_ms: int, **changes: Any) -> dict[str, Any]:
@@ -520,17 +522,43 @@ def test_worker_measurement_decoder(
 # --- files: the trace reader and the map loader ------------------------------------
 
 
+def measurement_of(text: str) -> tuple[str, GpsMeasurement] | None:
+    """What a trace line means on its own: (user, measurement), or None if it is bad."""
+    try:
+        data = json.loads(text)
+    except ValueError:
+        return None
+    if not isinstance(data, dict):
+        return None
+    user = data.pop("user", None)
+    if not isinstance(user, str) or not user:
+        return None
+    try:
+        return user, GpsMeasurement.model_validate(data)
+    except ValidationError:
+        return None
+
+
 @SMALL
 @given(
     lines=st.lists(
-        encoded(mutations({"user": "car", **fix(1)})).map(lambda b: b.decode("utf-8", "replace")),
+        encoded(mutations({"user": "car", **fix(1)})).map(lambda b: b.decode("utf-8", "replace"))
+        | st.just(json.dumps({"user": "bike", **fix(2)}))  # a good line, every so often
+        | st.sampled_from(["", "  ", "\t"]),  # blank lines are skipped, not errors
         max_size=5,
     )
 )
 def test_trace_reader_reports_every_bad_line(lines: list[str]) -> None:
-    results = list(read_trace(lines))
-    assert len(results) <= len(lines)
-    assert all(isinstance(r, TraceError) or r.user for r in results)
+    results = list(read_trace(lines, source="t.jsonl"))
+    expected = [(n, measurement_of(text)) for n, text in enumerate(lines, 1) if text.strip()]
+    assert len(results) == len(expected)  # one result per line that is not blank
+    for (number, meant), result in zip(expected, results, strict=True):
+        if meant is None:
+            assert isinstance(result, TraceError), (number, lines[number - 1])
+            assert str(result).startswith(f"t.jsonl:{number}: "), str(result)
+        else:
+            assert isinstance(result, TraceLine), (number, lines[number - 1], result)
+            assert (result.line, result.user, result.measurement) == (number, *meant)
 
 
 @SMALL

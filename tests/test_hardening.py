@@ -17,9 +17,11 @@ from typing import Any
 import pytest
 
 from laas.map.hdmap import HdMap
+from laas.models import CorrectedPosition
 from laas.service import LaasService, start_worker
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
 from ldm import (
+    ConnectError,
     Core,
     KeyPair,
     LdmError,
@@ -27,6 +29,7 @@ from ldm import (
     Provider,
     Request,
     RequestRejected,
+    RequestTimeout,
     ServiceSpec,
     Session,
 )
@@ -48,7 +51,6 @@ from .ldm.deployment import ECHO, EchoService, has_service
 from .ldm.test_tls import make_certificates
 
 ROOT = Path(__file__).resolve().parent.parent
-MAP = ROOT / "maps" / "messe-hamburg.geojson"
 SECURITY = ROOT / "deploy" / "security"
 CORE: dict[str, float] = {
     "rotation_period": 60.0,
@@ -59,14 +61,9 @@ CORE: dict[str, float] = {
 
 
 @pytest.fixture(scope="module")
-def hdmap() -> HdMap:
-    return HdMap.load(MAP)
-
-
-@pytest.fixture(scope="module")
-def fixes(hdmap: HdMap) -> dict[str, list[dict[str, Any]]]:
+def fixes(hamburg_map: HdMap) -> dict[str, list[dict[str, Any]]]:
     """The Hamburg scenario's fixes per user, positions only (stamped when sent)."""
-    trace = simulate(hdmap, hamburg_scenario(), ErrorModel(), 0)
+    trace = simulate(hamburg_map, hamburg_scenario(), ErrorModel(), 0)
     out: dict[str, list[dict[str, Any]]] = {}
     for f in trace.fixes:
         out.setdefault(f.user, []).append(f.measurement.model_dump())
@@ -148,10 +145,13 @@ class LaasDeployment:
 
 
 @pytest.fixture
-def laas(hdmap: HdMap) -> Iterator[LaasDeployment]:
+def laas(hamburg_map: HdMap) -> Iterator[LaasDeployment]:
     need_mosquitto()
     d = LaasDeployment(
-        MosquittoBroker().start(), MosquittoBroker().start(), MosquittoBroker().start(), hdmap
+        MosquittoBroker().start(),
+        MosquittoBroker().start(),
+        MosquittoBroker().start(),
+        hamburg_map,
     )
     try:
         d.service_core = Core.create(
@@ -164,17 +164,17 @@ def laas(hdmap: HdMap) -> Iterator[LaasDeployment]:
         d.close()
 
 
-def settle(futures: list[Future[dict[str, Any]]], within: float) -> tuple[int, list[str]]:
-    """Wait for every future: (answered, errors); a future still pending fails the test."""
-    answered, errors = 0, []
+def settle(futures: list[Future[dict[str, Any]]], within: float) -> list[dict[str, Any] | LdmError]:
+    """Wait for every future: its reply or its LdmError, in order; a future still
+    pending, or failing with anything else, fails the test."""
+    outcomes: list[dict[str, Any] | LdmError] = []
     deadline = time.monotonic() + within
     for f in futures:
         try:
-            f.result(max(0.0, deadline - time.monotonic()))
-            answered += 1
+            outcomes.append(f.result(max(0.0, deadline - time.monotonic())))
         except LdmError as exc:
-            errors.append(str(exc))
-    return answered, errors
+            outcomes.append(exc)
+    return outcomes
 
 
 @pytest.mark.mosquitto
@@ -194,17 +194,30 @@ def test_laas_survives_broker_worker_and_core_restarts(
     # The user broker dies mid-stream: QoS 1 input sent meanwhile is queued by the
     # participant and delivered after the reconnect, or its future fails with a clear
     # error (stale, or lost with the connection); nothing is left pending silently.
-    futures = [road.submit() for road in roads for _ in range(5)]
+    sent: list[tuple[int, Future[dict[str, Any]]]] = []  # (the fix's timestamp, its future)
+
+    def submit_five_each() -> None:
+        for road in roads:
+            for _ in range(5):
+                future = road.submit()
+                sent.append((road.last_ms, future))
+
+    submit_five_each()
     d.user.stop()
-    futures += [road.submit() for road in roads for _ in range(5)]
+    submit_five_each()
     time.sleep(0.5)
     d.user.start()
-    answered, errors = settle(futures, within=15)
-    # Every one is answered or failed clearly. How many arrive depends on how long the
-    # reconnect takes against max_age (2 s): on a loaded machine all may be stale.
-    assert answered + len(errors) == len(futures)
-    for error in errors:
-        assert "no reply" in error or "lost" in error or "connection" in error
+    outcomes = settle([f for _, f in sent], within=15)
+    # Every one is answered with the corrected position of its own fix, or failed with
+    # a clear error. How many arrive depends on how long the reconnect takes against
+    # max_age (2 s): on a loaded machine all may be stale.
+    for (stamp, _), outcome in zip(sent, outcomes, strict=True):
+        if isinstance(outcome, LdmError):
+            assert isinstance(outcome, RequestTimeout | ConnectError), repr(outcome)
+            assert "no reply" in str(outcome) or "connection" in str(outcome), outcome
+        else:
+            assert "error" not in outcome, outcome
+            assert CorrectedPosition.model_validate(outcome).timestamp == stamp, outcome
     for road in roads:
         road.answered_again()
     assert wait_for(has_service(d.participants[0], "laas"), 5)  # the list came back
@@ -266,7 +279,7 @@ class Spy:
 
 @pytest.mark.mosquitto
 def test_a_hostile_participant_gets_nothing_over_tls_with_passwords(
-    hdmap: HdMap, fixes: dict[str, list[dict[str, Any]]]
+    hamburg_map: HdMap, fixes: dict[str, list[dict[str, Any]]]
 ) -> None:
     need_mosquitto()
     tls_port = free_port()
@@ -296,7 +309,7 @@ def test_a_hostile_participant_gets_nothing_over_tls_with_passwords(
                 Transport(settings, client_id="x", sink=lambda e: None).start(timeout=1.5)
 
         core = Core.create("single", account("ldm-core-user"), None, **CORE).start(timeout=5)
-        worker, service = start_worker(account("laas-worker"), hdmap)
+        worker, service = start_worker(account("laas-worker"), hamburg_map)
         parts: list[Participant] = []
         spy = Spy()
         mallory = Transport(account("mallory"), client_id="alice", sink=spy.events.append)
@@ -388,7 +401,9 @@ def test_a_flooding_participant_is_rate_limited_without_slowing_others() -> None
                 assert quiet.request({"calm": i}, timeout=2.0) == {"echo": {"calm": i}}
                 time.sleep(0.05)
             calm_time = time.monotonic() - start
-            answered, errors = settle(futures, within=10)
+            outcomes = settle(futures, within=10)
+            answered = sum(isinstance(o, dict) for o in outcomes)
+            errors = [str(o) for o in outcomes if isinstance(o, LdmError)]
             rejected = [e for e in errors if "rate" in e or "second" in e]
             assert answered < 200 and rejected, (answered, errors[:3])
             assert core.stats.rejected_rate >= 400 - answered - 5
@@ -421,9 +436,9 @@ def test_the_provider_sheds_load_past_its_queue_and_counts_it() -> None:
 IDLE = 1_000  # pseudonyms: enough to show that memory does not grow with them
 
 
-def test_a_thousand_idle_pseudonyms_are_forgotten(hdmap: HdMap) -> None:
+def test_a_thousand_idle_pseudonyms_are_forgotten(hamburg_map: HdMap) -> None:
     wall, tick = Clock(1_700_000_000.0), Clock(0.0)
-    service = LaasService(hdmap, wall_clock=wall, clock=tick)
+    service = LaasService(hamburg_map, wall_clock=wall, clock=tick)
     base = {
         "latitude": 53.55876,
         "longitude": 9.97610,

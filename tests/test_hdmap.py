@@ -18,19 +18,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from laas.errors import MapError
+from laas.map.bundled import bundled_map
 from laas.map.hdmap import HdMap, Segment
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
-MAPS = Path(__file__).resolve().parent.parent / "maps"
-HAMBURG = MAPS / "messe-hamburg.geojson"
 HAMBURG_IDS = ["messe-0", "messe-1", "messe-2", "messe-3", "messe-4"]
 # d of the lane centres: 0, (3.25+3.25)/2, +(3.25+2.2)/2, +(2.2+1.8)/2
 HAMBURG_OFFSETS = [0.0, 3.25, 5.975, 7.975]
-
-
-@pytest.fixture(scope="module")
-def hamburg() -> HdMap:
-    return HdMap.load(HAMBURG)
 
 
 def _heading_diff(a: float, b: float) -> float:
@@ -40,11 +34,11 @@ def _heading_diff(a: float, b: float) -> float:
 # --- the Hamburg map ------------------------------------------------------------------------
 
 
-def test_hamburg_segments_and_lanes(hamburg: HdMap) -> None:
-    assert list(hamburg.segments) == HAMBURG_IDS
-    assert hamburg.projection.epsg == 32632
-    assert hamburg.source == str(HAMBURG)
-    for k, seg in enumerate(hamburg.segments.values()):
+def test_hamburg_segments_and_lanes(hamburg_map: HdMap) -> None:
+    assert list(hamburg_map.segments) == HAMBURG_IDS
+    assert hamburg_map.projection.epsg == 32632
+    assert hamburg_map.source == str(bundled_map("messe-hamburg"))
+    for k, seg in enumerate(hamburg_map.segments.values()):
         assert [lane.index for lane in seg.lanes] == [0, 1, 2, 3]
         assert [lane.type for lane in seg.lanes] == ["driving", "driving", "parking", "bicycle"]
         assert [lane.width for lane in seg.lanes] == [3.25, 3.25, 2.2, 1.8]
@@ -54,19 +48,19 @@ def test_hamburg_segments_and_lanes(hamburg: HdMap) -> None:
         assert seg.successors == ((HAMBURG_IDS[k + 1],) if k + 1 < len(HAMBURG_IDS) else ())
         assert seg.reference.equals(seg.lanes[0].centerline)
         assert 60.0 <= seg.length <= 150.0
-    total = sum(seg.length for seg in hamburg.segments.values())
+    total = sum(seg.length for seg in hamburg_map.segments.values())
     assert 560.0 < total < 640.0
 
 
-def test_hamburg_is_near_messe(hamburg: HdMap) -> None:
-    x0, y0, x1, y1 = hamburg.bounds
-    lon, lat = hamburg.projection.to_wgs84((x0 + x1) / 2, (y0 + y1) / 2)
+def test_hamburg_is_near_messe(hamburg_map: HdMap) -> None:
+    x0, y0, x1, y1 = hamburg_map.bounds
+    lon, lat = hamburg_map.projection.to_wgs84((x0 + x1) / 2, (y0 + y1) / 2)
     assert abs(lat - 53.561) < 0.005
     assert abs(lon - 9.980) < 0.008
 
 
-def test_hamburg_area_is_the_lane_surface(hamburg: HdMap) -> None:
-    for seg in hamburg.segments.values():
+def test_hamburg_area_is_the_lane_surface(hamburg_map: HdMap) -> None:
+    for seg in hamburg_map.segments.values():
         assert seg.area.geom_type == "Polygon"
         expected = sum(lane.width * lane.centerline.length for lane in seg.lanes)
         assert seg.area.area == pytest.approx(expected, rel=0.002)
@@ -75,8 +69,8 @@ def test_hamburg_area_is_the_lane_surface(hamburg: HdMap) -> None:
         assert seg.area.contains(seg.reference.interpolate(0.5, normalized=True))
 
 
-def test_headings_follow_the_road(hamburg: HdMap) -> None:
-    segs = hamburg.segments
+def test_headings_follow_the_road(hamburg_map: HdMap) -> None:
+    segs = hamburg_map.segments
     for sid in ("messe-0", "messe-1"):
         assert _heading_diff(segs[sid].heading(10.0), 30.0) < 0.05
     for sid in ("messe-3", "messe-4"):
@@ -98,8 +92,8 @@ def test_headings_follow_the_road(hamburg: HdMap) -> None:
         np.testing.assert_allclose(t, [math.sin(h), math.cos(h)], atol=1e-12)
 
 
-def test_lane_offsets_match_widths(hamburg: HdMap) -> None:
-    for seg in hamburg.segments.values():
+def test_lane_offsets_match_widths(hamburg_map: HdMap) -> None:
+    for seg in hamburg_map.segments.values():
         for s in np.linspace(-5.0, seg.length + 5.0, 23):
             offsets = seg.lane_offsets(float(s))
             assert offsets.shape == (4,)
@@ -108,9 +102,9 @@ def test_lane_offsets_match_widths(hamburg: HdMap) -> None:
         assert seg.lateral_bounds(seg.length / 2) == pytest.approx((-1.625, 8.875), abs=0.005)
 
 
-def test_lane_centre_lines_have_constant_offset_in_the_frame(hamburg: HdMap) -> None:
+def test_lane_centre_lines_have_constant_offset_in_the_frame(hamburg_map: HdMap) -> None:
     # also on the curve: lanes are mitred offset curves, and d = const is such a curve
-    for seg in hamburg.segments.values():
+    for seg in hamburg_map.segments.values():
         for lane, expected in zip(seg.lanes, HAMBURG_OFFSETS, strict=True):
             sd = seg.frame_array(np.asarray(lane.centerline.coords))
             np.testing.assert_allclose(sd[:, 1], expected, atol=0.005)
@@ -118,52 +112,52 @@ def test_lane_centre_lines_have_constant_offset_in_the_frame(hamburg: HdMap) -> 
             assert sd[-1, 0] == pytest.approx(seg.length, abs=0.01)
 
 
-def test_locate_points_on_every_lane(hamburg: HdMap) -> None:
-    for seg in hamburg.segments.values():
+def test_locate_points_on_every_lane(hamburg_map: HdMap) -> None:
+    for seg in hamburg_map.segments.values():
         for s in np.linspace(1.0, seg.length - 1.0, 9):
             for k, d in enumerate(seg.lane_offsets(float(s))):
                 x, y = seg.point(float(s), float(d))
-                found = hamburg.locate(x, y)
+                found = hamburg_map.locate(x, y)
                 assert found is not None and found.id == seg.id, (seg.id, s, k)
 
 
-def test_locate_outside_the_road(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-1"]
+def test_locate_outside_the_road(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-1"]
     x, y = seg.point(70.0, 8.875 + 5.0)  # 5 m right of the bicycle lane's edge
     assert not seg.area.intersects(shapely.Point(x, y))
-    found = hamburg.locate(x, y)
+    found = hamburg_map.locate(x, y)
     assert found is not None and found.id == "messe-1"
-    assert hamburg.locate(x, y, max_distance=4.0) is None
-    _, _, x1, y1 = hamburg.bounds
-    assert hamburg.locate(x1 + 100.0, y1 + 100.0) is None
-    assert hamburg.locate(0.0, 0.0) is None
+    assert hamburg_map.locate(x, y, max_distance=4.0) is None
+    _, _, x1, y1 = hamburg_map.bounds
+    assert hamburg_map.locate(x1 + 100.0, y1 + 100.0) is None
+    assert hamburg_map.locate(0.0, 0.0) is None
 
 
-def test_locate_at_a_seam_is_deterministic(hamburg: HdMap) -> None:
-    a, b = hamburg.segments["messe-0"], hamburg.segments["messe-1"]
+def test_locate_at_a_seam_is_deterministic(hamburg_map: HdMap) -> None:
+    a, b = hamburg_map.segments["messe-0"], hamburg_map.segments["messe-1"]
     x, y = a.point(a.length, 3.0)
     assert b.frame(x, y)[0] == pytest.approx(0.0, abs=0.01)
-    first = hamburg.locate(x, y)
+    first = hamburg_map.locate(x, y)
     assert first is not None and first.id in ("messe-0", "messe-1")
-    assert all(hamburg.locate(x, y) is first for _ in range(5))
+    assert all(hamburg_map.locate(x, y) is first for _ in range(5))
     # just past the seam, the point is inside messe-1 only
-    inside = hamburg.locate(*a.point(a.length + 0.5, 3.0))
+    inside = hamburg_map.locate(*a.point(a.length + 0.5, 3.0))
     assert inside is not None and inside.id == "messe-1"
 
 
-def test_segments_near(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-2"]
+def test_segments_near(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-2"]
     x, y = seg.point(seg.length / 2, 3.0)
-    near = hamburg.segments_near(x, y, 1.0)
+    near = hamburg_map.segments_near(x, y, 1.0)
     assert [s.id for s in near] == ["messe-2"]
-    wide = hamburg.segments_near(x, y, 200.0)
+    wide = hamburg_map.segments_near(x, y, 200.0)
     assert wide[0].id == "messe-2"
     assert {s.id for s in wide} == set(HAMBURG_IDS)
-    assert hamburg.segments_near(0.0, 0.0, 100.0) == []
+    assert hamburg_map.segments_near(0.0, 0.0, 100.0) == []
 
 
-def test_lane_point(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-2"]
+def test_lane_point(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-2"]
     x, y = seg.point(50.0, 4.0)
     for k, lane in enumerate(seg.lanes):
         px, py = seg.lane_point(k, x, y)
@@ -175,8 +169,8 @@ def test_lane_point(hamburg: HdMap) -> None:
         seg.lane_point(4, x, y)
 
 
-def test_frame_signs_and_extrapolation(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-0"]  # straight, bearing 30 degrees
+def test_frame_signs_and_extrapolation(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-0"]  # straight, bearing 30 degrees
     x0, y0 = seg.reference.coords[0]
     east = (math.cos(math.radians(30.0)), -math.sin(math.radians(30.0)))  # right of travel
     s, d = seg.frame(x0 + 2.0 * east[0], y0 + 2.0 * east[1])
@@ -195,8 +189,8 @@ def test_frame_signs_and_extrapolation(hamburg: HdMap) -> None:
     frac=st.floats(-0.3, 1.3),
     d=st.floats(-15.0, 15.0),
 )
-def test_frame_point_round_trip(hamburg: HdMap, k: int, frac: float, d: float) -> None:
-    seg = hamburg.segments[HAMBURG_IDS[k]]
+def test_frame_point_round_trip(hamburg_map: HdMap, k: int, frac: float, d: float) -> None:
+    seg = hamburg_map.segments[HAMBURG_IDS[k]]
     s = frac * seg.length
     x, y = seg.point(s, d)
     s2, d2 = seg.frame(x, y)
@@ -210,8 +204,10 @@ def test_frame_point_round_trip(hamburg: HdMap, k: int, frac: float, d: float) -
     k=st.integers(0, len(HAMBURG_IDS) - 1),
     pts=st.lists(st.tuples(st.floats(-400, 400), st.floats(-400, 400)), min_size=1, max_size=40),
 )
-def test_frame_array_matches_frame(hamburg: HdMap, k: int, pts: list[tuple[float, float]]) -> None:
-    seg = hamburg.segments[HAMBURG_IDS[k]]
+def test_frame_array_matches_frame(
+    hamburg_map: HdMap, k: int, pts: list[tuple[float, float]]
+) -> None:
+    seg = hamburg_map.segments[HAMBURG_IDS[k]]
     cx, cy = seg.point(seg.length / 2, 0.0)
     xy = np.asarray(pts) + np.array([cx, cy])
     out = seg.frame_array(xy)
@@ -220,18 +216,18 @@ def test_frame_array_matches_frame(hamburg: HdMap, k: int, pts: list[tuple[float
         assert tuple(row) == pytest.approx(seg.frame(float(x), float(y)), abs=1e-6)
 
 
-def test_frame_distance_matches_geometry_near_the_road(hamburg: HdMap) -> None:
+def test_frame_distance_matches_geometry_near_the_road(hamburg_map: HdMap) -> None:
     # near the reference, |d| is the Euclidean distance to it (to mitre-join precision)
     rng = np.random.default_rng(7)
-    for seg in hamburg.segments.values():
+    for seg in hamburg_map.segments.values():
         for _ in range(50):
             x, y = seg.point(rng.uniform(0, seg.length), rng.uniform(-10, 10))
             _, d = seg.frame(x, y)
             assert abs(d) == pytest.approx(seg.reference.distance(shapely.Point(x, y)), abs=0.01)
 
 
-def test_non_finite_inputs_are_rejected(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-0"]
+def test_non_finite_inputs_are_rejected(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-0"]
     with pytest.raises(ValueError):
         seg.frame(math.nan, 0.0)
     with pytest.raises(ValueError):
@@ -240,8 +236,8 @@ def test_non_finite_inputs_are_rejected(hamburg: HdMap) -> None:
         seg.lane_offsets(math.nan)
 
 
-def test_frame_array_rejects_bad_shapes(hamburg: HdMap) -> None:
-    seg = hamburg.segments["messe-0"]
+def test_frame_array_rejects_bad_shapes(hamburg_map: HdMap) -> None:
+    seg = hamburg_map.segments["messe-0"]
     assert seg.frame_array(np.zeros((0, 2))).shape == (0, 2)
     assert seg.frame_array([1.0, 2.0]).shape == (1, 2)
     with pytest.raises(ValueError):
@@ -535,8 +531,8 @@ def test_fuzzed_structure_raises_only_map_errors(value: Any, where: str) -> None
         HdMap.from_geojson(data)
 
 
-def test_segment_rejects_gaps_in_lane_indices(hamburg: HdMap) -> None:
-    lanes = hamburg.segments["messe-0"].lanes
+def test_segment_rejects_gaps_in_lane_indices(hamburg_map: HdMap) -> None:
+    lanes = hamburg_map.segments["messe-0"].lanes
     with pytest.raises(MapError, match="contiguous"):
         Segment("messe-0", [lanes[0], lanes[2]])
     with pytest.raises(MapError, match="no lanes"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from laas.config import EngineConfig
+from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
@@ -13,14 +14,11 @@ from laas.sim.score import answer_trace, score
 from ldm.brokers import BrokerKind
 from ldm.pytest_plugin import broker_kind
 
+from .helpers import small_map
+
 __all__ = ["broker_kind"]
 
 CONFIG = EngineConfig(sigma_pos=1.0, sigma_vel=0.25, sigma_heading=0.05)
-
-
-@pytest.fixture(scope="module")
-def hamburg() -> HdMap:
-    return HdMap.load(hamburg_scenario().map)
 
 
 @pytest.mark.parametrize(
@@ -28,33 +26,40 @@ def hamburg() -> HdMap:
     [pytest.param(1e6, id="rotation-off"), pytest.param(120.0, id="rotation-default")],
 )
 def test_live_accuracy_matches_offline_replay(
-    hamburg: HdMap, broker_kind: BrokerKind, rotation_period: float
+    hamburg_map: HdMap, broker_kind: BrokerKind, rotation_period: float
 ) -> None:
     scenario = hamburg_scenario()
-    trace = simulate(hamburg, scenario, scenario.errors, seed=4)
-    offline = score(hamburg, trace, answer_trace(hamburg, trace, CONFIG))
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    offline = score(hamburg_map, trace, answer_trace(hamburg_map, trace, CONFIG))
     with LocalDeployment(
-        hamburg, CONFIG, brokers=broker_kind, rotation_period=rotation_period
+        hamburg_map, CONFIG, brokers=broker_kind, rotation_period=rotation_period
     ) as deployment:
         live = run_participants(deployment.user_url, trace, speedup=20.0)
         assert deployment.service is not None
         assert deployment.service.stats.answered == len(trace.fixes)
     assert live.errors == []
     assert live.answered == len(trace.fixes)
-    online = score(hamburg, trace, live.answers)
+    online = score(hamburg_map, trace, live.answers)
     assert abs(online.accuracy - offline.accuracy) <= 0.02
     assert online.accuracy > 0.9
 
 
-def test_rotation_costs_little_accuracy(hamburg: HdMap) -> None:
+def test_rotation_costs_little_accuracy(hamburg_map: HdMap) -> None:
     """Pseudonyms rotating every 1.5 s (30 s of the scenario at 20x): a rotated user is
     a new track to the worker, but the common error carries the group over."""
     scenario = hamburg_scenario()
-    trace = simulate(hamburg, scenario, scenario.errors, seed=4)
-    offline = score(hamburg, trace, answer_trace(hamburg, trace, CONFIG))
-    with LocalDeployment(hamburg, CONFIG, brokers="embedded", rotation_period=1.5) as deployment:
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    offline = score(hamburg_map, trace, answer_trace(hamburg_map, trace, CONFIG))
+    with LocalDeployment(
+        hamburg_map, CONFIG, brokers="embedded", rotation_period=1.5
+    ) as deployment:
         live = run_participants(deployment.user_url, trace, speedup=20.0)
         assert deployment.cores["user"].stats.rotations > 0  # pseudonyms did rotate
     assert live.answered == len(trace.fixes), live.errors[:3]
-    online = score(hamburg, trace, live.answers)
+    online = score(hamburg_map, trace, live.answers)
     assert online.accuracy >= offline.accuracy - 0.1
+
+
+def test_a_worker_process_needs_a_map_file() -> None:
+    with pytest.raises(ConfigError, match="is not one"):
+        LocalDeployment(small_map(), worker_process=True)  # built in memory

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import pytest
-
 from laas.map.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig
 from ldm import Request
@@ -14,11 +12,6 @@ from .helpers import Clock
 
 NOW = 1_700_000_000.0
 FIX = {"latitude": 53.55876, "longitude": 9.97610, "altitude": 10.0, "heading": 30.8, "speed": 5.4}
-
-
-@pytest.fixture(scope="module")
-def hdmap() -> HdMap:
-    return HdMap.load("maps/messe-hamburg.geojson")
 
 
 def send(service: LaasService, who: str, t: float, **changes: Any) -> dict[str, Any]:
@@ -30,9 +23,9 @@ def fields(reply: dict[str, Any]) -> set[str]:
     return {f["field"] for f in reply["error"]["fields"]}
 
 
-def test_bad_fixes_get_an_error_naming_the_field(hdmap: HdMap) -> None:
+def test_bad_fixes_get_an_error_naming_the_field(hamburg_map: HdMap) -> None:
     clock = Clock()
-    service = LaasService(hdmap, wall_clock=clock)
+    service = LaasService(hamburg_map, wall_clock=clock)
     assert "segment" in send(service, "a", NOW)
     assert fields(send(service, "b", NOW, latitude=float("nan"))) == {"latitude"}
     assert fields(send(service, "b", NOW, longitude=181.0)) == {"longitude"}
@@ -42,10 +35,10 @@ def test_bad_fixes_get_an_error_naming_the_field(hdmap: HdMap) -> None:
     assert service.stats.invalid == 3 and service.stats.outside == 1 and service.stats.refused == 1
 
 
-def test_clock_checks_are_relative_to_the_sessions_first_fix(hdmap: HdMap) -> None:
+def test_clock_checks_are_relative_to_the_sessions_first_fix(hamburg_map: HdMap) -> None:
     clock = Clock()
     limits = WorkerConfig(max_future=30, max_past=600, max_speedup=100)
-    service = LaasService(hdmap, worker=limits, wall_clock=clock)
+    service = LaasService(hamburg_map, worker=limits, wall_clock=clock)
     ahead = send(service, "x", NOW + 31)
     assert ahead["error"]["kind"] == "clock" and fields(ahead) == {"timestamp"}
     assert "ahead" in ahead["error"]["message"]
@@ -62,11 +55,13 @@ def test_clock_checks_are_relative_to_the_sessions_first_fix(hdmap: HdMap) -> No
     assert service.stats.clock == 3
 
 
-def test_pseudonyms_are_forgotten_by_the_wall_clock_and_capped(hdmap: HdMap) -> None:
+def test_pseudonyms_are_forgotten_by_the_wall_clock_and_capped(hamburg_map: HdMap) -> None:
     """A session whose timestamps run ahead is still forgotten after track_timeout of
     silence by the worker's own clock, and no more than max_pseudonyms are held."""
     wall, tick = Clock(), Clock()
-    service = LaasService(hdmap, worker=WorkerConfig(max_pseudonyms=3), clock=tick, wall_clock=wall)
+    service = LaasService(
+        hamburg_map, worker=WorkerConfig(max_pseudonyms=3), clock=tick, wall_clock=wall
+    )
     assert "segment" in send(service, "ahead", NOW + 100)  # 100 s ahead: allowed at first
     for who in ("a", "b"):
         assert "segment" in send(service, who, NOW)

@@ -70,6 +70,11 @@ class EchoService:
         with self.lock:
             return {r.pseudonym for r in self.requests}
 
+    def pseudonyms_of(self, who: str) -> set[str]:
+        """The pseudonyms of the requests whose payload says ``"who": who``."""
+        with self.lock:
+            return {r.pseudonym for r in self.requests if r.payload.get("who") == who}
+
 
 def echo_provider(url: str, service: EchoService, **settings: Any) -> Provider:
     settings.setdefault("announce_interval", 0.3)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import threading
 import time
 
 import pytest
@@ -200,21 +201,28 @@ def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
     from ldm._worker import Worker
     from ldm.brokers import wait_for
 
-    class Slow(Worker[int]):
+    entered, release = threading.Event(), threading.Event()
+
+    class Blocking(Worker[int]):
         handled = 0
 
         def handle(self, item: int) -> None:
-            time.sleep(0.005)
+            entered.set()
+            assert release.wait(5), "never released"
             self.handled += 1
 
-    worker = Slow("slow", 1.0)
+    worker = Blocking("blocking", 1.0)
     for i in range(1_000):
         worker.put(i)
     worker.start_worker()
-    assert wait_for(lambda: worker.handled > 0, 5)
-    worker.stop_worker()
-    assert not worker._thread.is_alive()
-    assert worker.handled < 100  # the stop did not wait for the backlog
+    assert entered.wait(5)  # inside the first item, 999 waiting behind it
+    stopper = threading.Thread(target=worker.stop_worker)
+    stopper.start()
+    assert wait_for(worker._stopping.is_set, 5)  # the stop is asked for ...
+    release.set()  # ... before the first item ends
+    stopper.join(5)
+    assert not stopper.is_alive() and not worker._thread.is_alive()
+    assert worker.handled == 1  # the stop did not wait for the backlog
 
 
 def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> None:

@@ -6,8 +6,9 @@
                                   +-- echo process (the bare MQTT floor)
 
 The brokers are Mosquitto processes (or the embedded broker, each in a child process),
-the two cores and the laas worker share this process, and the participants run in
-worker processes, each participant a real `ldm.Participant` with its own connection.
+the two cores share this process, the laas worker has a process of its own (a
+`laas.run.deployment.LocalDeployment` with `worker_process`), and the participants run
+in worker processes, each participant a real `ldm.Participant` with its own connection.
 They drive simulated road users along the Hamburg road (`laas.sim.scenario`), with the
 fixes' timestamps shifted to the wall clock. Latency is measured where it is felt: from
 just before `Session.submit` (JSON, encryption and publish included) to the moment the
@@ -32,7 +33,7 @@ import secrets
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -40,10 +41,14 @@ import numpy as np
 
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
-from laas.models import CorrectedPosition
-from laas.run.deployment import BrokerChoice
-from laas.run.participants import run_participants, wait_for_service
-from laas.service import SERVICE_NAME, start_worker
+from laas.run.deployment import BrokerChoice, LocalDeployment
+from laas.run.participants import (
+    Request,
+    collect_replies,
+    open_sessions,
+    run_participants,
+    submit_on_time,
+)
 from laas.sim.scenario import (
     EPOCH_MS,
     ErrorModel,
@@ -54,8 +59,8 @@ from laas.sim.scenario import (
     simulate,
 )
 from laas.sim.score import score
-from ldm import BrokerSettings, Core, Participant, Session
-from ldm.brokers import RunningBroker, find_mosquitto, start_broker
+from ldm import BrokerSettings, Session
+from ldm.brokers import find_mosquitto
 from ldm.transport import Event, Message, Transport
 
 __all__ = [
@@ -213,77 +218,6 @@ def bench_scenario(participants: int, rate: float, duration: float, seed: int = 
     )
 
 
-# --- the deployment -----------------------------------------------------------------
-
-
-class _Topology:
-    """Three brokers, two cores (in this process) and the worker (in its own process).
-
-    The worker gets a process of its own, as in the field: its engine holds the GIL for
-    milliseconds per fix, which would otherwise delay every core hop in this process.
-    """
-
-    def __init__(self, kind: Literal["mosquitto", "embedded-process"], hdmap: HdMap) -> None:
-        self.kind = kind
-        self.hdmap = hdmap
-        self.brokers: dict[str, RunningBroker] = {}
-        self.cores: dict[str, Core] = {}
-        ctx = mp.get_context("spawn")
-        self._ready, self._stop = ctx.Event(), ctx.Event()
-        self._answered = ctx.Value("q", -1)
-        self._worker: Any = None
-
-    def url(self, name: str) -> str:
-        return self.brokers[name].url
-
-    @property
-    def worker_answered(self) -> int:
-        """Fixes the worker answered (known once it has stopped)."""
-        return int(self._answered.value)
-
-    def start_brokers(self) -> _Topology:
-        for name in ("user", "backbone", "service"):
-            self.brokers[name] = start_broker(self.kind)
-        return self
-
-    def start_ldm(self, rotation_period: float) -> _Topology:
-        for name in ("user", "service"):
-            self.cores[name] = Core.create(
-                name, self.url(name), self.url("backbone"), rotation_period=rotation_period
-            ).start()
-        self._worker = mp.get_context("spawn").Process(
-            target=_worker_process,
-            args=(self.url("service"), self.hdmap.source, self._ready, self._stop, self._answered),
-            name="bench-worker",
-        )
-        self._worker.start()
-        if not self._ready.wait(60.0):
-            raise ConfigError("the laas worker process did not start within 60 s")
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._worker is not None:
-            self._worker.join(15.0)
-            if self._worker.is_alive():
-                self._worker.kill()
-                self._worker.join(5.0)
-            self._worker = None
-        for core in self.cores.values():
-            core.stop()
-        for broker in self.brokers.values():
-            broker.stop()
-
-
-def _worker_process(url: str, map_path: str, ready: Any, stop: Any, answered: Any) -> None:
-    """`laas worker` in a child process; leaves its answer count in `answered`."""
-    provider, service = start_worker(url, HdMap.load(map_path))
-    ready.set()
-    stop.wait()
-    provider.stop()
-    answered.value = service.stats.answered
-
-
 # --- participant processes ----------------------------------------------------------
 
 
@@ -292,15 +226,15 @@ class _Shard:
     index: int
     url: str
     tag: str
-    # (seconds after the start, user, measurement as a dict), in time order
-    sends: list[tuple[float, str, dict[str, Any]]]
+    # (user, measurement as a dict), in time order; its time zero is EPOCH_MS
+    sends: list[tuple[str, dict[str, Any]]]
     reply_timeout: float
 
 
 def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, abort: Any) -> None:
     """Run one shard of the participants; report to `results` (a multiprocessing queue)."""
-    users = sorted({u for _, u, _ in shard.sends})
-    participants: dict[str, Participant] = {}
+    settings = BrokerSettings.of(shard.url)
+    logins = {u: (settings, f"bench-{shard.tag}-{u}") for u in sorted({u for u, _ in shard.sends})}
     pongs: dict[int, float] = {}
 
     pong_topic = _PONG.format(shard=shard.index)
@@ -313,38 +247,20 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
             if payload.isdigit():
                 pongs[int(payload)] = time.perf_counter()
 
-    bare = Transport(
-        BrokerSettings.of(shard.url),
-        client_id=f"bench-bare-{shard.tag}-{shard.index}",
-        sink=on_pong,
-    )
+    bare = Transport(settings, client_id=f"bench-bare-{shard.tag}-{shard.index}", sink=on_pong)
     bare.subscribe(pong_topic, 0)
-    try:
-        bare.start(10.0)
-        for u in users:
-            participants[u] = Participant.create(shard.url, client_id=f"bench-{shard.tag}-{u}")
-            participants[u].start()
-        wait_for_service(participants[users[0]], 30.0)
-        sessions: dict[str, Session] = {u: p.open(SERVICE_NAME) for u, p in participants.items()}
+    try:  # "failed" before "ready": could not start; after it: failed while sending
+        with ExitStack() as stack:
+            stack.callback(bare.stop)  # last: after the participants
+            bare.start(10.0)
+            sessions = stack.enter_context(open_sessions(logins, 30.0))
+            results.put(("ready", shard.index, len(sessions)))
+            go.wait()
+            if not abort.is_set():
+                report = _drive(shard, sessions, bare, pongs, results, start_at.value)
+                results.put(("done", shard.index, report))
     except Exception as exc:
         results.put(("failed", shard.index, f"{type(exc).__name__}: {exc}"))
-        for p in participants.values():
-            p.stop()
-        bare.stop()
-        return
-    results.put(("ready", shard.index, len(sessions)))
-    go.wait()
-    try:
-        if not abort.is_set():
-            results.put(
-                ("done", shard.index, _drive(shard, sessions, bare, pongs, results, start_at))
-            )
-    except Exception as exc:
-        results.put(("failed", shard.index, f"{type(exc).__name__}: {exc}"))
-    finally:
-        for p in participants.values():
-            p.stop()
-        bare.stop()
 
 
 def _drive(
@@ -353,72 +269,50 @@ def _drive(
     bare: Transport,
     pongs: dict[int, float],
     results: Any,
-    start_at: Any,
+    start: float,
 ) -> dict[str, Any]:
-    """Send the shard's fixes on time, then collect the replies and the pongs."""
-    done_at: dict[int, float] = {}
-    futures: list[tuple[float, Future[dict[str, Any]]]] = []
+    """Send the shard's fixes on time (a bare ping beside every fourth), then collect
+    the replies and the pongs."""
     pings: dict[int, float] = {}
-    t0 = start_at.value
-    mono0 = time.perf_counter() + (t0 - time.time())
     next_report = time.perf_counter() + 1.0
-    for i, (offset, user, measurement) in enumerate(shard.sends):
-        delay = mono0 + offset - time.perf_counter()
-        if delay > 0:
-            time.sleep(delay)
-        payload = dict(measurement, timestamp=round((t0 + offset) * 1000.0))
-        sent = time.perf_counter()
-        future = sessions[user].submit(payload)
-        future.add_done_callback(_stamp(done_at, i))
-        futures.append((sent, future))
+
+    def beside(i: int, requests: Sequence[Request]) -> None:
+        nonlocal next_report
         if i % _PING_EVERY == 0:
             pings[i] = time.perf_counter()
             bare.publish(_PING.format(shard=shard.index), str(i).encode(), 0)
         if time.perf_counter() >= next_report:
-            answered = sum(f.done() for _, f in futures)
+            answered = sum(r.future.done() for r in requests)
             results.put(("progress", shard.index, (i + 1, answered)))
             next_report += 1.0
-    end = time.perf_counter()
+
+    sent = submit_on_time(sessions, shard.sends, t0_ms=EPOCH_MS, start=start, on_submit=beside)
 
     latencies: list[float] = []
     errors: list[str] = []
     error_replies = lost = 0
-    for i, (sent, future) in enumerate(futures):
-        try:
-            reply = future.result(max(0.0, sent + shard.reply_timeout - time.perf_counter()))
-        except Exception as exc:  # a timeout, or the session gave the request up
+    for reply in collect_replies(sent, shard.reply_timeout):
+        if reply.latency is not None:
+            latencies.append(reply.latency)
+            continue
+        if reply.lost:
             lost += 1
-            if len(errors) < 5:
-                errors.append(f"fix {i}: no reply ({type(exc).__name__}: {exc})")
-            continue
-        if "error" in reply:
+        else:  # an error reply, or one that is not a corrected position
             error_replies += 1
-            if len(errors) < 5:
-                errors.append(f"fix {i}: {reply['error'].get('message')}")
-            continue
-        CorrectedPosition.model_validate(reply)
-        latencies.append(done_at.get(i, time.perf_counter()) - sent)
+        if len(errors) < 5 and reply.error:
+            errors.append(reply.error)
     time.sleep(min(1.0, shard.reply_timeout))  # the last pongs
     bare_latencies = [pongs[i] - t for i, t in pings.items() if i in pongs]
     return {
-        "sent": len(futures),
+        "sent": len(sent.requests),
         "latencies": latencies,
         "error_replies": error_replies,
         "lost": lost,
         "bare": bare_latencies,
         "bare_lost": len(pings) - len(bare_latencies),
-        "elapsed": end - mono0,
+        "elapsed": sent.end - sent.start,
         "errors": errors,
     }
-
-
-def _stamp(done_at: dict[int, float], i: int) -> Callable[[Future[dict[str, Any]]], None]:
-    """A done-callback recording when reply i arrived (on the participant's thread)."""
-
-    def record(_future: Future[dict[str, Any]]) -> None:
-        done_at[i] = time.perf_counter()
-
-    return record
 
 
 def _is_ping(topic: str) -> bool:
@@ -461,20 +355,28 @@ def _kind(brokers: BrokerChoice) -> Literal["mosquitto", "embedded-process"]:
     return "embedded-process"
 
 
+def _deployment(
+    kind: Literal["mosquitto", "embedded-process"], hdmap: HdMap, rotation_period: float
+) -> LocalDeployment:
+    """The three brokers, the two cores in this process and the worker in its own."""
+    return LocalDeployment(
+        hdmap, brokers=kind, rotation_period=rotation_period, worker_process=True
+    )
+
+
 def _shards(trace: Trace, processes: int, url: str, config: BenchConfig) -> list[_Shard]:
     users = sorted({f.user for f in trace.fixes})
     owner = {u: k % processes for k, u in enumerate(users)}
-    sends: list[list[tuple[float, str, dict[str, Any]]]] = [[] for _ in range(processes)]
+    sends: list[list[tuple[str, dict[str, Any]]]] = [[] for _ in range(processes)]
     for fix in trace.fixes:
-        offset = (fix.measurement.timestamp - EPOCH_MS) / 1000.0
-        sends[owner[fix.user]].append(
-            (offset, fix.user, fix.measurement.model_dump(exclude_none=True))
-        )
+        sends[owner[fix.user]].append((fix.user, fix.measurement.model_dump(exclude_none=True)))
     tag = secrets.token_hex(3)
     return [_Shard(k, url, tag, s, config.reply_timeout) for k, s in enumerate(sends) if s]
 
 
-def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress) -> BenchReport:
+def _load(
+    config: BenchConfig, deployment: LocalDeployment, trace: Trace, say: Progress
+) -> BenchReport:
     cores = mp.cpu_count() or 2
     processes = config.processes or max(2, min(4, cores))
     processes = min(processes, config.participants)
@@ -482,10 +384,10 @@ def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress)
     results = ctx.Queue()
     go, abort, echo_ready, echo_stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     start_at = ctx.Value("d", 0.0)
-    shards = _shards(trace, processes, topology.url("user"), config)
+    shards = _shards(trace, processes, deployment.user_url, config)
     echo = ctx.Process(
         target=_echo_process,
-        args=(topology.url("user"), shards[0].tag, echo_ready, echo_stop),
+        args=(deployment.user_url, shards[0].tag, echo_ready, echo_stop),
         name="bench-echo",
     )
     workers = [
@@ -552,7 +454,7 @@ def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress)
         participants=config.participants,
         rate=config.rate,
         duration=config.duration,
-        brokers=topology.kind,
+        brokers=deployment.kind,
         processes=len(shards),
         sent=sum(p["sent"] for p in parts),
         answered=sum(len(p["latencies"]) for p in parts),
@@ -562,8 +464,8 @@ def _load(config: BenchConfig, topology: _Topology, trace: Trace, say: Progress)
         ldm=Latency.of([x for p in parts for x in p["latencies"]]),
         bare=Latency.of([x for p in parts for x in p["bare"]]),
         bare_lost=sum(p["bare_lost"] for p in parts),
-        dropped_stale=sum(c.stats.dropped_stale for c in topology.cores.values()),
-        worker_answered=-1,  # known when the topology stops
+        dropped_stale=sum(c.stats.dropped_stale for c in deployment.cores.values()),
+        worker_answered=-1,  # known when the deployment stops
         errors=[e for p in parts for e in p["errors"]][:10],
     )
 
@@ -575,13 +477,9 @@ def _privacy(
     scenario = hamburg_scenario()
     hdmap = HdMap.load(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), seed=0)
-    topology = _Topology(kind, hdmap).start_brokers()
-    try:
-        topology.start_ldm(rotation_period=period / speedup)
-        live = run_participants(topology.url("user"), trace, speedup=speedup)
-        rotations = topology.cores["user"].stats.rotations
-    finally:
-        topology.stop()
+    with _deployment(kind, hdmap, period / speedup) as deployment:
+        live = run_participants(deployment.user_url, trace, speedup=speedup)
+        rotations = deployment.cores["user"].stats.rotations
     result = score(hdmap, trace, live.answers) if live.answered else None
     return PrivacyRun(
         rotation_period=period,
@@ -604,13 +502,10 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
         f"laas bench: {config.participants} participants at {config.rate:g} Hz for "
         f"{config.duration:g} s ({len(trace.fixes)} fixes) on {kind} brokers"
     )
-    topology = _Topology(kind, hdmap).start_brokers()
-    try:
-        topology.start_ldm(config.rotation_period)
-        report = _load(config, topology, trace, say)
-    finally:
-        topology.stop()
-    report.worker_answered = topology.worker_answered
+    deployment = _deployment(kind, hdmap, config.rotation_period)
+    with deployment:
+        report = _load(config, deployment, trace, say)
+    report.worker_answered = deployment.worker_answered
     for period in (config.rotation_period, ROTATION_OFF):
         label = "off" if period == ROTATION_OFF else f"every {period:g} s"
         say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")

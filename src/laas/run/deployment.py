@@ -4,15 +4,19 @@
                                                                   service broker <- laas worker
 
 Three brokers (Mosquitto processes when `mosquitto` is installed, else the embedded
-broker), two LDM cores and the worker, each with its own MQTT connections.
+broker), two LDM cores and the worker, each with its own MQTT connections. The cores
+run in this process; the worker too, or in a process of its own (`worker_process`).
 """
 
 from __future__ import annotations
 
+import multiprocessing as mp
+from pathlib import Path
 from types import TracebackType
-from typing import Literal
+from typing import Any, Literal
 
 from laas.config import EngineConfig
+from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
@@ -22,9 +26,17 @@ __all__ = ["BrokerChoice", "LocalDeployment"]
 
 BrokerChoice = Literal["auto", "embedded", "embedded-process", "mosquitto"]
 
+WORKER_START_TIMEOUT = 60.0  # s for a worker process to load its map and connect
+
 
 class LocalDeployment:
-    """Start with `with LocalDeployment(hdmap) as d:`; participants connect to `d.user_url`."""
+    """Start with `with LocalDeployment(hdmap) as d:`; participants connect to `d.user_url`.
+
+    With `worker_process=True` the worker runs in a spawned process of its own, as in
+    the field: its engine holds the GIL for milliseconds per fix, which would otherwise
+    delay every core hop in this process (what `laas bench` measures). That process
+    loads the map from `hdmap.source`, so the map must come from a file.
+    """
 
     def __init__(
         self,
@@ -34,7 +46,12 @@ class LocalDeployment:
         brokers: BrokerChoice = "auto",
         rotation_period: float = 120.0,
         data_qos: int = 0,
+        worker_process: bool = False,
     ) -> None:
+        if worker_process and not Path(hdmap.source).is_file():
+            raise ConfigError(
+                f"a worker process loads its map from a file; {hdmap.source!r} is not one"
+            )
         self.hdmap = hdmap
         self.config = config
         self.kind: BrokerKind = (
@@ -42,14 +59,25 @@ class LocalDeployment:
         )
         self.rotation_period = rotation_period
         self.data_qos = data_qos
+        self.worker_process = worker_process
         self.brokers: dict[str, RunningBroker] = {}
         self.cores: dict[str, Core] = {}
         self.provider: Provider | None = None
-        self.service: LaasService | None = None
+        self.service: LaasService | None = None  # the worker's, when it runs in this process
+        self._worker: _WorkerProcess | None = None
+        self._worker_answered = -1
 
     @property
     def user_url(self) -> str:
         return self.brokers["user"].url
+
+    @property
+    def worker_answered(self) -> int:
+        """Fixes the worker answered; of a worker process, known once it has stopped (-1
+        until then)."""
+        if self.service is not None:
+            return self.service.stats.answered
+        return self._worker_answered
 
     def start(self) -> LocalDeployment:
         try:
@@ -64,9 +92,12 @@ class LocalDeployment:
                     rotation_period=self.rotation_period,
                     data_qos=self.data_qos,
                 ).start()
-            self.provider, self.service = start_worker(
-                self.brokers["service"].url, self.hdmap, self.config
-            )
+            if self.worker_process:
+                self._worker = _WorkerProcess(self.brokers["service"].url, self.hdmap, self.config)
+            else:
+                self.provider, self.service = start_worker(
+                    self.brokers["service"].url, self.hdmap, self.config
+                )
         except BaseException:
             self.stop()
             raise
@@ -76,6 +107,9 @@ class LocalDeployment:
         if self.provider is not None:
             self.provider.stop()
             self.provider = None
+        if self._worker is not None:
+            self._worker_answered = self._worker.stop()
+            self._worker = None
         for core in self.cores.values():
             core.stop()
         self.cores.clear()
@@ -93,3 +127,48 @@ class LocalDeployment:
         _tb: TracebackType | None,
     ) -> None:
         self.stop()
+
+
+class _WorkerProcess:
+    """`laas worker` in a spawned child process, serving until `stop`."""
+
+    def __init__(self, url: str, hdmap: HdMap, config: EngineConfig | None) -> None:
+        ctx = mp.get_context("spawn")
+        self._ready, self._stop = ctx.Event(), ctx.Event()
+        self._answered = ctx.Value("q", -1)
+        self._process = ctx.Process(
+            target=_serve,
+            args=(url, hdmap.source, config, self._ready, self._stop, self._answered),
+            name="laas-worker",
+        )
+        self._process.start()
+        waited = 0.0
+        while not self._ready.wait(0.5):
+            waited += 0.5
+            if not self._process.is_alive() or waited >= WORKER_START_TIMEOUT:
+                self.stop()
+                raise ConfigError(
+                    f"the laas worker process did not start within {WORKER_START_TIMEOUT:.0f} s"
+                    if waited >= WORKER_START_TIMEOUT
+                    else f"the laas worker process exited (code {self._process.exitcode})"
+                )
+
+    def stop(self) -> int:
+        """Stop the worker; the number of fixes it answered (-1 if it did not say)."""
+        self._stop.set()
+        self._process.join(15.0)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(5.0)
+        return int(self._answered.value)
+
+
+def _serve(
+    url: str, map_path: str, config: EngineConfig | None, ready: Any, stop: Any, answered: Any
+) -> None:
+    """The worker process: serve until `stop` is set, then leave the answer count."""
+    provider, service = start_worker(url, HdMap.load(map_path), config)
+    ready.set()
+    stop.wait()
+    provider.stop()
+    answered.value = service.stats.answered

@@ -5,15 +5,20 @@ client id), discovers the `laas` service from the retained list, opens a session
 publishes its fixes at their times divided by `speedup`. The fixes' timestamps are
 shifted to the wall clock at the start (their spacing is kept), so ages and clocks
 stay meaningful. Replies are collected per fix, in trace order.
+
+`run_participants` does all of that in this process. Its parts serve `laas bench` too,
+whose participant processes each drive a share of the users: `open_sessions` (connect
+and discover), `submit_on_time` (the sending loop) and `collect_replies`.
 """
 
 from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +29,20 @@ from laas.service import SERVICE_NAME
 from laas.sim.scenario import Trace
 from ldm import BrokerSettings, Participant, Session
 
-__all__ = ["LiveRun", "accounts", "run_participants", "wait_for_service"]
+__all__ = [
+    "LiveRun",
+    "Reply",
+    "Request",
+    "Sent",
+    "accounts",
+    "collect_replies",
+    "open_sessions",
+    "run_participants",
+    "submit_on_time",
+    "wait_for_service",
+]
+
+Login = tuple[BrokerSettings, str]  # the broker settings and client id of one road user
 
 
 @dataclass
@@ -38,6 +56,41 @@ class LiveRun:
     @property
     def answered(self) -> int:
         return sum(a is not None for a in self.answers)
+
+
+@dataclass
+class Request:
+    """One submitted fix: when it left and when its reply arrived (`time.perf_counter`)."""
+
+    index: int
+    sent: float
+    future: Future[dict[str, Any]]
+    arrived: float | None = None
+
+    def stamp(self, _future: Future[dict[str, Any]]) -> None:
+        """The future's done-callback: runs on the participant's thread, records the time."""
+        self.arrived = time.perf_counter()
+
+
+@dataclass
+class Sent:
+    """What `submit_on_time` sent: the requests, in schedule order, and its clock."""
+
+    requests: list[Request]
+    start: float  # perf_counter at the schedule's zero
+    end: float  # perf_counter after the last submit
+    shift: int  # ms added to every fix's timestamp
+
+
+@dataclass(frozen=True)
+class Reply:
+    """The outcome of one request: a corrected position, or why there is none."""
+
+    index: int
+    answer: CorrectedPosition | None
+    latency: float | None  # s from just before the submit to the reply, for an answer
+    error: str | None
+    lost: bool = False  # no reply at all (a timeout, or the session gave it up)
 
 
 def wait_for_service(participant: Participant, timeout: float) -> None:
@@ -56,6 +109,88 @@ def wait_for_service(participant: Participant, timeout: float) -> None:
 def accounts(trace: Trace, prefix: str) -> dict[str, str]:
     """Road user -> the account (and MQTT client id) it connects with: prefix + user."""
     return {u: f"{prefix}{u}" for u in sorted({f.user for f in trace.fixes})}
+
+
+@contextmanager
+def open_sessions(
+    logins: Mapping[str, Login], discovery_timeout: float, **participant_settings: Any
+) -> Iterator[dict[str, Session]]:
+    """Start one participant per road user, wait for the service, open a session each;
+    the participants stop when the block ends."""
+    participants = {
+        u: Participant.create(settings, client_id=client_id, **participant_settings)
+        for u, (settings, client_id) in logins.items()
+    }
+    try:
+        for p in participants.values():
+            p.start()
+        wait_for_service(next(iter(participants.values())), discovery_timeout)
+        yield {u: p.open(SERVICE_NAME) for u, p in participants.items()}
+    finally:
+        for p in participants.values():
+            p.stop()
+
+
+def submit_on_time(
+    sessions: Mapping[str, Session],
+    sends: Sequence[tuple[str, dict[str, Any]]],
+    *,
+    t0_ms: int,
+    start: float,
+    speedup: float = 1.0,
+    on_submit: Callable[[int, Sequence[Request]], None] | None = None,
+) -> Sent:
+    """Submit each (user, measurement) when its time comes, then return.
+
+    Time `t0_ms` of the fixes falls at wall-clock time `start` (`time.time()`); a fix is
+    due `(timestamp - t0_ms) / speedup` ms later and leaves with its timestamp shifted by
+    `start - t0_ms`. `on_submit(i, requests so far)` runs after each submit.
+    """
+    shift = round(start * 1000.0) - t0_ms
+    mono0 = time.perf_counter() + (start - time.time())
+    requests: list[Request] = []
+    for i, (user, measurement) in enumerate(sends):
+        timestamp = int(measurement["timestamp"])
+        delay = mono0 + (timestamp - t0_ms) / 1000.0 / speedup - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        payload = dict(measurement, timestamp=timestamp + shift)
+        sent = time.perf_counter()
+        request = Request(i, sent, sessions[user].submit(payload))
+        request.future.add_done_callback(request.stamp)
+        requests.append(request)
+        if on_submit is not None:
+            on_submit(i, requests)
+    return Sent(requests, mono0, time.perf_counter(), shift)
+
+
+def collect_replies(sent: Sent, reply_timeout: float) -> Iterator[Reply]:
+    """Each request's outcome in order, waiting up to `reply_timeout` s from its submit."""
+    for r in sent.requests:
+        try:
+            reply = r.future.result(max(0.0, r.sent + reply_timeout - time.perf_counter()))
+        except FutureTimeout:
+            yield Reply(
+                r.index, None, None, f"fix {r.index}: no reply within {reply_timeout:g} s", True
+            )
+            continue
+        except Exception as exc:  # the session reports a lost request as an error
+            yield Reply(
+                r.index, None, None, f"fix {r.index}: no reply ({type(exc).__name__}: {exc})", True
+            )
+            continue
+        if "error" in reply:
+            error = reply["error"]
+            message = error.get("message", error) if isinstance(error, dict) else error
+            yield Reply(r.index, None, None, f"fix {r.index}: {message}")
+            continue
+        try:
+            answer = CorrectedPosition.model_validate(reply)
+        except ValidationError as exc:
+            yield Reply(r.index, None, None, f"fix {r.index}: malformed reply: {exc}")
+            continue
+        arrived = r.arrived if r.arrived is not None else time.perf_counter()
+        yield Reply(r.index, answer, arrived - r.sent, None)
 
 
 def run_participants(
@@ -77,6 +212,7 @@ def run_participants(
     account to its own topics (`use_username_as_clientid` and a %u ACL) requires.
     """
     base = BrokerSettings.of(cluster)
+    logins: dict[str, Login]
     if account_prefix is None:
         tag = secrets.token_hex(3)
         logins = {u: (base, f"{u}-{tag}") for u in sorted({f.user for f in trace.fixes})}
@@ -85,67 +221,30 @@ def run_participants(
             u: (base.model_copy(update={"username": name}), name)
             for u, name in accounts(trace, account_prefix).items()
         }
-    participants = {
-        u: Participant.create(settings, client_id=client_id, **participant_settings)
-        for u, (settings, client_id) in logins.items()
-    }
-    sessions: dict[str, Session] = {}
-    futures: list[tuple[int, float, Future[dict[str, Any]]]] = []
-    run = LiveRun(answers=[None] * len(trace.fixes))
-    done_at: dict[int, float] = {}
-    try:
-        for p in participants.values():
-            p.start()
-        wait_for_service(next(iter(participants.values())), discovery_timeout)
-        for u, p in participants.items():
-            sessions[u] = p.open(SERVICE_NAME)
-        t0_fix = trace.fixes[0].measurement.timestamp
-        shift = int(time.time() * 1000) - t0_fix
-        start = time.monotonic()
-        for i, fix in enumerate(trace.fixes):
-            m = fix.measurement
-            due = start + (m.timestamp - t0_fix) / 1000.0 / speedup
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            payload = m.model_copy(update={"timestamp": m.timestamp + shift}).model_dump(
-                exclude_none=True
+    sends = [(f.user, f.measurement.model_dump(exclude_none=True)) for f in trace.fixes]
+    total = len(sends)
+
+    def report(i: int, _requests: Sequence[Request]) -> None:
+        if progress is not None:
+            progress(i + 1, total)
+
+    run = LiveRun(answers=[None] * total)
+    with open_sessions(logins, discovery_timeout, **participant_settings) as sessions:
+        sent = submit_on_time(
+            sessions,
+            sends,
+            t0_ms=trace.fixes[0].measurement.timestamp,
+            start=time.time(),
+            speedup=speedup,
+            on_submit=report,
+        )
+        for reply in collect_replies(sent, reply_timeout):
+            if reply.answer is None:
+                run.errors.append(reply.error or f"fix {reply.index}: no answer")
+                continue
+            run.answers[reply.index] = reply.answer.model_copy(
+                update={"timestamp": reply.answer.timestamp - sent.shift}
             )
-            sent = time.monotonic()
-            future = sessions[fix.user].submit(payload)
-            future.add_done_callback(_stamp(done_at, i))
-            futures.append((i, sent, future))
-            if progress is not None:
-                progress(i + 1, len(trace.fixes))
-        for i, sent, future in futures:
-            try:
-                reply = future.result(max(0.0, sent + reply_timeout - time.monotonic()))
-            except FutureTimeout:
-                run.errors.append(f"fix {i}: no reply within {reply_timeout} s")
-                continue
-            except Exception as exc:  # the session reports a lost request as an error
-                run.errors.append(f"fix {i}: {exc}")
-                continue
-            if "error" in reply:
-                run.errors.append(f"fix {i}: {reply['error'].get('message', reply['error'])}")
-                continue
-            try:
-                answer = CorrectedPosition.model_validate(reply)
-            except ValidationError as exc:
-                run.errors.append(f"fix {i}: malformed reply: {exc}")
-                continue
-            run.answers[i] = answer.model_copy(update={"timestamp": answer.timestamp - shift})
-            run.latencies.append(done_at.get(i, time.monotonic()) - sent)
-    finally:
-        for p in participants.values():
-            p.stop()
+            if reply.latency is not None:
+                run.latencies.append(reply.latency)
     return run
-
-
-def _stamp(done_at: dict[int, float], i: int) -> Callable[[Future[dict[str, Any]]], None]:
-    """A done-callback that records when reply i arrived (on the participant's thread)."""
-
-    def record(_future: Future[dict[str, Any]]) -> None:
-        done_at[i] = time.monotonic()
-
-    return record

@@ -24,7 +24,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from laas.models import CorrectedPosition
+from laas.models import CorrectedPosition, ErrorReply, read_reply
 from laas.service import SERVICE_NAME
 from laas.sim.scenario import Trace
 from ldm import BrokerSettings, Participant, Session
@@ -179,15 +179,13 @@ def collect_replies(sent: Sent, reply_timeout: float) -> Iterator[Reply]:
                 r.index, None, None, f"fix {r.index}: no reply ({type(exc).__name__}: {exc})", True
             )
             continue
-        if "error" in reply:
-            error = reply["error"]
-            message = error.get("message", error) if isinstance(error, dict) else error
-            yield Reply(r.index, None, None, f"fix {r.index}: {message}")
-            continue
         try:
-            answer = CorrectedPosition.model_validate(reply)
+            answer = read_reply(reply)
         except ValidationError as exc:
             yield Reply(r.index, None, None, f"fix {r.index}: malformed reply: {exc}")
+            continue
+        if isinstance(answer, ErrorReply):
+            yield Reply(r.index, None, None, f"fix {r.index}: {answer.error.message}")
             continue
         arrived = r.arrived if r.arrived is not None else time.perf_counter()
         yield Reply(r.index, answer, arrived - r.sent, None)

@@ -7,6 +7,14 @@
 the same broker as a child process (``python -m ldm broker``), which keeps amqtt off the
 caller's GIL: use it when the caller is busy (a demo with many clients). This module is
 the only place that touches amqtt. The broker allows anonymous clients, no persistence.
+
+``EmbeddedBroker.stop`` gives amqtt's ``shutdown()`` `_SHUTDOWN_TIMEOUT` seconds, then
+closes the listening socket, aborts every connection left and cancels every task left
+on the broker's loop. ``shutdown()`` can wait forever for a connection's reader task: a
+packet that arrives as the task is cancelled makes Python 3.11's ``asyncio.wait_for``
+return the packet and lose the cancellation. A stop that merely gave up on it left
+the listening socket and the connections open: clients stayed connected to a broker
+that no longer ran, and the restart found its port taken.
 """
 
 from __future__ import annotations
@@ -25,6 +33,8 @@ __all__ = ["BrokerProcess", "EmbeddedBroker", "read_line"]
 
 _START_TIMEOUT = 10.0
 _REBIND_TIMEOUT = 5.0  # s: how long a restart waits for its old port to be released
+_SHUTDOWN_TIMEOUT = 2.0  # s: how long a stop lets amqtt shut down by itself
+_HALT_TIMEOUT = 5.0  # s: how long a stop then waits for the cancelled tasks to end
 
 
 def read_line(stream: IO[str], timeout: float) -> str:
@@ -44,6 +54,7 @@ class EmbeddedBroker:
         self.port = port
         self._loop: asyncio.AbstractEventLoop | None = None
         self._broker: Any = None
+        self._server: asyncio.Server | None = None
         self._thread: threading.Thread | None = None
 
     @property
@@ -99,30 +110,30 @@ class EmbeddedBroker:
         return self
 
     async def _open(self, loop: asyncio.AbstractEventLoop) -> None:
-        from amqtt.broker import Broker  # the one amqtt import
-
         config = {
             "listeners": {"default": {"type": "tcp", "bind": f"{self.host}:{self.port}"}},
             "plugins": {
                 "amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}
             },
         }
-        broker = Broker(config, loop=loop)
+        broker = _broker_class()(config, loop=loop)
         await broker.start()
-        server = broker._servers["default"].instance
+        server: asyncio.Server = broker._servers["default"].instance
         self.port = int(server.sockets[0].getsockname()[1])
+        self._server = server
         self._broker = broker
 
     def stop(self) -> None:
         """Close every connection (no DISCONNECT, like a crash) and stop listening."""
-        broker, loop, thread = self._broker, self._loop, self._thread
-        if broker is None or loop is None or thread is None:
+        broker, server, loop, thread = self._broker, self._server, self._loop, self._thread
+        if broker is None or server is None or loop is None or thread is None:
             return
-        self._broker = None
+        self._broker = self._server = None
         try:
-            asyncio.run_coroutine_threadsafe(broker.shutdown(), loop).result(_START_TIMEOUT)
+            stopping = _stop(broker, server)
+            asyncio.run_coroutine_threadsafe(stopping, loop).result(_START_TIMEOUT)
         except Exception:
-            logging.getLogger(__name__).info("embedded broker: unclean shutdown")
+            logging.getLogger(__name__).warning("embedded broker: unclean stop", exc_info=True)
         loop.call_soon_threadsafe(loop.stop)
         thread.join(_START_TIMEOUT)
 
@@ -131,6 +142,48 @@ class EmbeddedBroker:
 
     def __exit__(self, *_exc: object) -> None:
         self.stop()
+
+
+def _broker_class() -> Any:
+    """amqtt's broker, keeping its client connections so that a stop can drop them."""
+    from amqtt.broker import Broker  # the one amqtt import
+
+    class _Broker(Broker):  # type: ignore[misc]  # amqtt is untyped here
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.connections: set[asyncio.BaseTransport] = set()
+
+        async def stream_connected(
+            self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
+        ) -> None:
+            self.connections.add(writer.transport)
+            try:
+                await super().stream_connected(reader, writer, listener_name=listener_name)
+            finally:
+                self.connections.discard(writer.transport)
+
+    return _Broker
+
+
+async def _stop(broker: Any, server: asyncio.Server) -> None:
+    """On the broker's loop: amqtt's shutdown, within a bound; then stop listening,
+    abort every connection and end every task that is left."""
+    try:
+        await asyncio.wait_for(broker.shutdown(), _SHUTDOWN_TIMEOUT)
+    except TimeoutError:
+        logging.getLogger(__name__).info("embedded broker: shutdown stuck; dropping the rest")
+    server.close()
+    for transport in list(broker.connections):
+        if isinstance(transport, asyncio.WriteTransport):
+            transport.abort()
+    tasks = asyncio.all_tasks() - {asyncio.current_task()}
+    for task in tasks:
+        task.cancel()
+    if tasks:
+        done, _ = await asyncio.wait(tasks, timeout=_HALT_TIMEOUT)
+        for task in done:
+            if not task.cancelled():
+                task.exception()  # retrieved: the broker is gone, its errors with it
 
 
 class BrokerProcess:

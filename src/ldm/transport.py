@@ -8,7 +8,16 @@ turns paho's messages into the LDM's own `Message`.
 Threads: paho's network thread (started by ``loop_start``) runs every callback here.
 They never block: each one converts what it got and hands it to ``sink`` (normally
 ``queue.SimpleQueue.put``); the owner's worker thread does the real work. ``publish``
-may be called from any thread.
+and ``subscribe`` may be called from any thread.
+
+Only a connection the broker has acknowledged (CONNACK) is handed a PUBLISH or a
+SUBSCRIBE from another thread. paho alone would not ensure it: on a reconnect it
+makes the new socket usable before it queues CONNECT on it, so a publish from
+another thread at that moment goes out first, and a broker that takes its first
+packet for a CONNECT (amqtt) then waits for more bytes while paho waits for a
+CONNACK, until the keep-alive ends the connection. So a QoS 0 message is dropped
+while there is no acknowledged connection, and QoS 1/2 messages wait here and are
+published on paho's thread right after the CONNACK, behind the re-subscriptions.
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ import contextlib
 import logging
 import socket
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +40,8 @@ from ldm.errors import ConnectError
 __all__ = ["Connected", "Event", "Message", "Transport", "Will"]
 
 log = logging.getLogger(__name__)
+
+_MAX_QUEUED = 10_000  # QoS 1/2 messages held here, and again in paho's queue, at most
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,7 +102,12 @@ class Transport:
         self.name = name or client_id
         self._sink = sink
         self._subscriptions: dict[str, int] = {}
+        self._held: deque[tuple[str, bytes, int, bool]] = deque()
+        """QoS 1/2 messages taken while no connection was acknowledged."""
         self._lock = threading.Lock()
+        """Held around every paho call that writes to the socket (publish, subscribe) and
+        around every change of ``_connected``: such a call never sees a socket that
+        has not been acknowledged. Held only for calls that do not block."""
         self._connected = threading.Event()
         self._started = False
         self.disconnects = 0
@@ -111,8 +128,9 @@ class Transport:
         if will is not None:
             client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         client.reconnect_delay_set(settings.reconnect_min, settings.reconnect_max)  # type: ignore[arg-type]
-        client.max_queued_messages_set(10_000)
+        client.max_queued_messages_set(_MAX_QUEUED)
         client.on_socket_open = _nodelay
+        client.on_pre_connect = self._on_pre_connect
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
@@ -120,15 +138,24 @@ class Transport:
 
     # --- paho callbacks: paho's network thread, never block ---------------------------
 
+    def _on_pre_connect(self, _c: mqtt.Client, _u: Any) -> None:
+        # Before paho opens a new socket: a publish or subscribe under way on another
+        # thread finishes first (on the old socket, or none), and none starts until
+        # the CONNACK.
+        with self._lock:
+            self._connected.clear()
+
     def _on_connect(self, client: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
         if reason.is_failure:
             log.warning("%s: broker refused the connection: %s", self.name, reason)
             return
-        with self._lock:  # with `subscribe`: a filter is either in this list or sent there
-            subscriptions = list(self._subscriptions.items())
+        with self._lock:  # every filter and held message is sent here, or after this
+            if self._subscriptions:
+                client.subscribe(list(self._subscriptions.items()))
+            held, self._held = self._held, deque()
+            for topic, payload, qos, retain in held:
+                client.publish(topic, payload, qos=qos, retain=retain)
             self._connected.set()
-        if subscriptions:
-            client.subscribe(subscriptions)
         self._sink(Connected(self.name))
 
     def _on_disconnect(self, _c: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
@@ -157,9 +184,8 @@ class Transport:
         """Subscribe now if connected, and again after every reconnect."""
         with self._lock:
             self._subscriptions[topic_filter] = qos
-            connected = self.connected
-        if connected:
-            self._client.subscribe(topic_filter, qos)
+            if self.connected:
+                self._client.subscribe(topic_filter, qos)
 
     def start(self, timeout: float | None = None) -> None:
         """Connect in the background; with a timeout, wait for the first connection."""
@@ -176,21 +202,34 @@ class Transport:
     def publish(self, topic: str, payload: bytes, qos: int = 0, retain: bool = False) -> bool:
         """Queue a message for sending; never waits for the broker.
 
-        False when paho could not take it: QoS 0 while disconnected (paho drops it), or
-        paho's queue of unacknowledged QoS 1/2 messages is full. QoS 1/2 messages taken
-        while disconnected are sent after the reconnect.
+        False when it was not taken: QoS 0 while no connection is acknowledged (dropped),
+        or `_MAX_QUEUED` QoS 1/2 messages already wait. QoS 1/2 messages taken while
+        disconnected are sent after the reconnect.
         """
-        info = self._client.publish(topic, payload, qos=qos, retain=retain)
-        if info.rc == mqtt.MQTT_ERR_SUCCESS:
+        return self._publish(topic, payload, qos, retain) is not None
+
+    def _publish(
+        self, topic: str, payload: bytes, qos: int, retain: bool
+    ) -> mqtt.MQTTMessageInfo | bool | None:
+        """paho's receipt, True if held for the next connection, None if not taken."""
+        with self._lock:
+            if self.connected:
+                info = self._client.publish(topic, payload, qos=qos, retain=retain)
+                ok = info.rc == mqtt.MQTT_ERR_SUCCESS or (
+                    qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN  # paho re-sends it
+                )
+                return info if ok else None
+            if qos == 0 or len(self._held) >= _MAX_QUEUED:
+                return None
+            self._held.append((topic, payload, qos, retain))
             return True
-        return qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN
 
     def publish_and_wait(
         self, topic: str, payload: bytes, qos: int = 1, retain: bool = False, timeout: float = 2.0
     ) -> None:
         """Publish and wait until sent; for shutdown paths, never from a paho callback."""
-        info = self._client.publish(topic, payload, qos=qos, retain=retain)
-        if self.connected:
+        info = self._publish(topic, payload, qos, retain)
+        if isinstance(info, mqtt.MQTTMessageInfo):
             try:
                 info.wait_for_publish(timeout)
             except (RuntimeError, ValueError):

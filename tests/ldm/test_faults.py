@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import threading
 import time
+from typing import Any
 
 import pytest
 
 from ldm import Core, LdmError
 from ldm.brokers import wait_for
+from ldm.config import BrokerSettings
 from ldm.participant import Session
+from ldm.transport import Connected, Event, Message, Transport
 
 from .deployment import FAST, deploy, echo_provider, has_service
 
@@ -77,3 +81,47 @@ def test_a_restarted_provider_with_a_new_key_is_used_again(deployment) -> None:
     d.provider = echo_provider(d.service.url, d.echo)  # a new process: a new static key
     works_again(session)
     assert session.service.public_key == d.provider.key.public != old_key
+
+
+def test_a_publish_as_the_transport_reconnects_waits_for_the_connack(mqtt_broker) -> None:
+    """Another thread publishes after paho opened the new socket but before it sent
+    CONNECT there. Nothing may precede the CONNECT: amqtt would read the PUBLISH as a
+    CONNECT and wait, Mosquitto would close the connection."""
+    sent: list[Event] = []
+    got: list[Event] = []
+    sender = Transport(BrokerSettings(url=mqtt_broker.url), client_id="racer", sink=sent.append)
+    receiver = Transport(BrokerSettings(url=mqtt_broker.url), client_id="watcher", sink=got.append)
+    receiver.subscribe("race/#", 1)
+    sender.start(timeout=5)
+    receiver.start(timeout=5)
+    opened: list[bool] = []
+    taken: dict[int, bool] = {}
+    on_socket_open = sender._client.on_socket_open
+    assert on_socket_open is not None
+
+    def publish_from_another_thread(client: Any, userdata: Any, sock: Any) -> None:
+        on_socket_open(client, userdata, sock)
+        opened.append(True)
+        if len(opened) == 1:  # the socket exists; paho queues CONNECT when this returns
+            for qos in (0, 1):
+                other = threading.Thread(
+                    target=lambda q=qos: taken.update(
+                        {q: sender.publish(f"race/{q}", b"x", q, True)}
+                    )
+                )
+                other.start()
+                other.join()
+
+    try:
+        mqtt_broker.stop()
+        assert wait_for(lambda: not sender.connected, 10)
+        sender._client.on_socket_open = publish_from_another_thread
+        mqtt_broker.start()
+        assert wait_for(lambda: sum(isinstance(e, Connected) for e in sent) == 2, 10)
+        assert len(opened) == 1  # the first connection after the restart was accepted
+        assert taken == {0: False, 1: True}  # QoS 0 dropped, QoS 1 held for the connection
+        assert wait_for(lambda: any(isinstance(e, Message) and e.topic == "race/1" for e in got), 5)
+        assert not any(isinstance(e, Message) and e.topic == "race/0" for e in got)
+    finally:
+        sender.stop()
+        receiver.stop()

@@ -109,14 +109,7 @@ class CooperativeLaneFilter(LaneFilter):
 
         # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] D[l] S[l]
         transition, direction = lane_prediction(
-            offsets,
-            tuple(lane.direction for lane in segment.lanes),
-            track.velocity,
-            normal,
-            tangent,
-            track.dt,
-            c.lane_change_rate,
-            c.max_lane_change,
+            segment, offsets, normal, track, c.lane_change_rate, c.max_lane_change
         )
         types = tuple(lane.type for lane in segment.lanes)
         # The speed is a lasting trait of the user, not news at every fix: its evidence

@@ -221,14 +221,7 @@ class PaperLaneFilter(LaneFilter):
         self._places[user] = _Place(t, p, track.velocity, s, d, offsets, normal, lateral_var)
         self._seen[user] = track.t
         transition, direction = lane_prediction(
-            offsets,
-            tuple(lane.direction for lane in segment.lanes),
-            track.velocity,
-            normal,
-            tangent,
-            track.dt,
-            c.paper_lane_change_rate,
-            c.max_lane_change,
+            segment, offsets, normal, track, c.paper_lane_change_rate, c.max_lane_change
         )
         # c_v[l] = p_v + (o_l - d_v) n_v: each user's filtered fix moved across onto lane l.
         placed: dict[str, np.ndarray] = {}

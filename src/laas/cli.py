@@ -101,6 +101,8 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
     from laas.sim.evaluate import evaluate, format_table
     from laas.sim.scenario import get_scenario
 
+    if a.suite is not None:
+        return _evaluate_suite(a)
     scenario = get_scenario(a.scenario)
     modes: tuple[Mode, ...] = ("paper", "default") if a.mode == "both" else (a.mode,)
     rows = evaluate(
@@ -118,6 +120,26 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
     if a.plot:
         _plots(scenario.name, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
     return 0
+
+
+def _evaluate_suite(a: argparse.Namespace) -> int:
+    import time
+
+    from laas.sim.suite import format_report, get_suite, run_suite, suite_plots, worst_run
+
+    suite = get_suite(a.suite)
+    t0 = time.perf_counter()
+    rows = run_suite(suite, workers=a.workers, progress=progress_printer("evaluate", "runs"))
+    seconds = time.perf_counter() - t0
+    if a.json:
+        print(json.dumps([r.as_dict() for r in rows], indent=1))
+    else:
+        print(format_report(suite, rows, seconds))
+    if a.plot:
+        for p in suite_plots(worst_run(rows), Path(a.plot)):
+            print(f"wrote {p}", file=sys.stderr if a.json else sys.stdout)
+    failed = any(m.error is not None for r in rows for m in r.methods.values())
+    return 1 if failed else 0
 
 
 def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
@@ -380,8 +402,15 @@ def build_parser() -> argparse.ArgumentParser:
     _engine_args(p)
     p.set_defaults(func=_cmd_replay)
 
-    p = sub.add_parser("evaluate", help="the paper's Table I, both modes, seeded runs")
+    p = sub.add_parser(
+        "evaluate", help="the paper's Table I, both modes, seeded runs; or a scenario suite"
+    )
     p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
+    p.add_argument(
+        "--suite",
+        help="run a suite of drawn scenarios instead: dev, heldout or smoke "
+        "(docs/evaluation.md; --scenario, --runs and --mode do not apply)",
+    )
     p.add_argument("--runs", type=int, default=20, help="seeded runs per configuration")
     p.add_argument("--mode", choices=["both", "default", "paper"], default="both")
     p.add_argument("--workers", type=int, default=None, help="processes (default: cores)")

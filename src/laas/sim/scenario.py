@@ -6,16 +6,33 @@ are smooth: the lateral offset follows d(t) = o_a + (o_b - o_a) (1 - cos(pi u)) 
 `change_time` seconds. The GNSS error model adds to the true position a common error
 (the bias, the same for every receiver in the area, optionally drifting as a random
 walk) and per-fix Gaussian noise on position, speed and heading (paper section V).
+
+Optional features, all off by default (the built-in scenarios use none of them, and their
+traces are what they always were):
+
+- a user may enter late and leave early (`enter`, `leave`), stop for a while (`stops`:
+  a cosine speed profile, peak deceleration `brake`), be parked (`speed` 0), drive at its
+  own speed along its own lane, slowed for curves (`along_lane`, `_Motion`), send at its
+  own rate (`rate`), and have a receiver of its own: a constant error (`bias`), a noise
+  level (`noise_scale` times the model's sigma_pos) and a reported accuracy
+  (`accuracy_scale`);
+- the error model may add heading noise that grows as speed falls (`heading_per_speed`),
+  heavy-tailed outliers (`outlier_rate`), multipath jumps (`multipath_rate`), and lost
+  fixes, singly (`dropout_rate`) or in gaps (`gap_rate`).
+
+These draw from a second random stream (seeded by (seed, 1)), so the first stream, and with
+it every trace of a scenario that uses none of them, is unchanged.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
@@ -29,6 +46,7 @@ __all__ = [
     "SimulatedFix",
     "Trace",
     "UserPlan",
+    "distance_driven",
     "get_scenario",
     "hamburg_scenario",
     "melbourne_scenario",
@@ -41,7 +59,8 @@ EPOCH_MS = 1_700_000_000_000  # 2023-11-14T22:13:20Z, the scenario's t = 0
 
 
 class ErrorModel(BaseModel):
-    """GNSS errors: a common bias (m east, m north) plus per-fix Gaussian noise."""
+    """GNSS errors: a common bias (m east, m north) plus per-fix noise, and the optional
+    receiver effects of the module docstring (each off at its default)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -53,23 +72,121 @@ class ErrorModel(BaseModel):
     sigma_pos: Annotated[float, Field(ge=0.0)] = 1.0
     sigma_vel: Annotated[float, Field(ge=0.0)] = 0.25
     sigma_heading: Annotated[float, Field(ge=0.0)] = Field(default=0.05, description="degrees")
+    heading_per_speed: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0,
+        description=(
+            "heading noise that grows as speed v falls, degrees * m/s: "
+            "sigma_h = sigma_heading + k / max(v, 0.1), at most 180 degrees"
+        ),
+    )
+    outlier_rate: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        default=0.0, description="share of fixes whose noise is outlier_scale * Student-t"
+    )
+    outlier_scale: Annotated[float, Field(ge=0.0)] = Field(
+        default=10.0, description="scale of the outliers' Student-t per axis, m"
+    )
+    outlier_dof: Annotated[float, Field(gt=0.0)] = Field(
+        default=3.0, description="degrees of freedom of the outliers' Student-t"
+    )
+    multipath_rate: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0, description="multipath jumps per second per receiver (Poisson)"
+    )
+    multipath_offset: Annotated[float, Field(ge=0.0)] = Field(
+        default=4.0, description="size of a jump: U(0.5, 1) times this, any direction, m"
+    )
+    multipath_duration: Annotated[float, Field(gt=0.0)] = Field(
+        default=4.0, description="length of a jump: U(0.5, 1.5) times this, s"
+    )
+    dropout_rate: Annotated[float, Field(ge=0.0, lt=1.0)] = Field(
+        default=0.0, description="share of fixes lost one by one"
+    )
+    gap_rate: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0, description="gaps (runs of lost fixes) per second per receiver (Poisson)"
+    )
+    gap_duration: Annotated[float, Field(gt=0.0)] = Field(
+        default=4.0, description="length of a gap: U(0.5, 1.5) times this, s"
+    )
+    accuracy_jitter: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.25, description="log-normal spread of a reported accuracy about its level"
+    )
 
 
 class UserPlan(BaseModel):
-    """One road user's drive: lanes[k] = (from second, lane index)."""
+    """One road user's drive: lanes[k] = (from second, lane index).
+
+    Times (lanes, enter, leave, stops) are the user's own clock, t - phase.
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     user: str
     kind: str
-    speed: Annotated[float, Field(gt=0.0)]
-    start: Annotated[float, Field(ge=0.0)] = Field(description="start station on the route, m")
+    speed: Annotated[float, Field(ge=0.0)] = Field(description="cruising speed, m/s; 0: parked")
+    start: Annotated[float, Field(ge=0.0)] = Field(description="station on the route at `enter`, m")
     lanes: tuple[tuple[float, int], ...]
     change_time: Annotated[float, Field(gt=0.0)] = 3.0
     phase: Annotated[float, Field(ge=0.0, lt=1.0)] = Field(
         default=0.0, description="offset of this receiver's fixes within the period, s"
     )
     reverse: bool = Field(default=False, description="drive the route backwards from `start`")
+    along_lane: bool = Field(
+        default=False,
+        description=(
+            "`speed` is along the user's own path, slowed for curves (see `_Motion`); "
+            "else it is the rate of the route's station, lane 0's length"
+        ),
+    )
+    enter: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0, description="when the user appears (its first fix), s"
+    )
+    leave: Annotated[float, Field(gt=0.0)] | None = Field(
+        default=None, description="when the user sends its last fix, s (None: the end)"
+    )
+    stops: tuple[tuple[float, float], ...] = Field(
+        default=(),
+        description="(when the speed reaches 0, for how long it stays 0) per stop, s",
+    )
+    brake: Annotated[float, Field(gt=0.0)] = Field(
+        default=1.5,
+        description=(
+            "peak deceleration and acceleration around a stop, m/s^2: the speed follows "
+            "a half cosine over pi v / (2 brake) seconds"
+        ),
+    )
+    rate: Annotated[float, Field(gt=0.0, le=50.0)] | None = Field(
+        default=None, description="this receiver's fix rate, Hz (None: the scenario's)"
+    )
+    bias: tuple[float, float] = Field(
+        default=(0.0, 0.0), description="this receiver's own constant error, (m E, m N)"
+    )
+    noise_scale: Annotated[float, Field(gt=0.0)] = Field(
+        default=1.0, description="this receiver's position noise in units of sigma_pos"
+    )
+    accuracy_scale: Annotated[float, Field(gt=0.0)] | None = Field(
+        default=None,
+        description=(
+            "the receiver reports accuracy = scale * sqrt(2) * its sigma per axis * "
+            "log-normal jitter, rounded to 0.1 m: the horizontal radius, as GpsMeasurement "
+            "defines it (None: it reports none)"
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _check_times(self) -> UserPlan:
+        period = 1.0 / self.rate if self.rate is not None else None
+        if period is not None and self.phase >= period:
+            raise ValueError(f"phase {self.phase} must be below the period {period:g} s")
+        if self.leave is not None and self.leave <= self.enter:
+            raise ValueError(f"leave ({self.leave}) must come after enter ({self.enter})")
+        ramp = _ramp(self)
+        last = self.enter
+        for at, stopped in self.stops:
+            if stopped < 0.0 or at - ramp < last - 1e-9:
+                raise ValueError(
+                    f"stop at {at} s: stops must not overlap, start after `enter` and last >= 0 s"
+                )
+            last = at + stopped + ramp
+        return self
 
 
 class Scenario(BaseModel):
@@ -78,7 +195,9 @@ class Scenario(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     name: str
-    map: str = Field(description="path of the GeoJSON map")
+    map: str = Field(
+        description="path of the GeoJSON map (generated maps: a name, see laas.sim.family)"
+    )
     route: tuple[str, ...] = Field(description="segment ids, in driving order")
     users: tuple[UserPlan, ...]
     duration: Annotated[float, Field(gt=0.0)]
@@ -88,7 +207,7 @@ class Scenario(BaseModel):
 
 @dataclass(frozen=True, slots=True)
 class SimulatedFix:
-    """One measurement and the truth behind it."""
+    """One measurement and the truth behind it, with the true errors an oracle may use."""
 
     user: str
     kind: str
@@ -98,6 +217,10 @@ class SimulatedFix:
     true_heading: float  # degrees
     segment: str
     lane: int
+    common_e: float = 0.0  # the common error at this fix, m east
+    common_n: float = 0.0  # and m north
+    receiver_e: float = 0.0  # the receiver's own constant error, m east
+    receiver_n: float = 0.0  # and m north
 
 
 @dataclass(frozen=True)
@@ -148,10 +271,143 @@ def _lateral(plan: UserPlan, t: float, offsets: np.ndarray) -> tuple[float, int]
     return float(offsets[current]), current
 
 
+def _ramp(plan: UserPlan) -> float:
+    """Seconds to brake from (or speed up to) the cruising speed: T = pi v / (2 brake)."""
+    return math.pi * plan.speed / (2.0 * plan.brake)
+
+
+def _cruising_time(plan: UserPlan, t: float) -> float:
+    """Seconds at cruising speed that the distance driven from `enter` to t is worth.
+
+    Around a stop reached at a and held for h seconds the speed is v (1 + cos(pi y / T)) / 2
+    for y = t - (a - T) in [0, T], then 0, then v (1 - cos(pi y / T)) / 2 over the T seconds
+    after a + h; each stop costs T + h seconds once passed.
+    """
+    tau = t - plan.enter
+    ramp = _ramp(plan)
+    if not plan.stops or ramp <= 0.0:
+        return tau
+    lost = 0.0
+    for at, held in plan.stops:
+        x = t - (at - ramp)
+        if x <= 0.0:
+            break
+        if x <= ramp:
+            lost += (x - ramp / math.pi * math.sin(math.pi * x / ramp)) / 2.0
+        elif x <= ramp + held:
+            lost += ramp / 2.0 + (x - ramp)
+        elif x <= 2.0 * ramp + held:
+            y = x - ramp - held
+            lost += ramp / 2.0 + held + (y + ramp / math.pi * math.sin(math.pi * y / ramp)) / 2.0
+        else:
+            lost += ramp + held
+    return tau - lost
+
+
+def distance_driven(plan: UserPlan, t: float) -> float:
+    """Metres the user has driven from `enter` to its time t (stops and ramps included)."""
+    return plan.speed * _cruising_time(plan, t)
+
+
+LATERAL_ACCEL = 2.5  # m/s^2: most lateral acceleration of an `along_lane` user in a curve
+CURVE_ACCEL = 1.5  # m/s^2: how fast it slows down for a curve and speeds up after it
+_STEP = 0.1  # s, time step of an `along_lane` user's stations
+
+
+class _Motion:
+    """Each lane's geometry along a route, for users who drive at their own speed.
+
+    On a 1 m grid of route stations s, per lane k: the stretch g_k(s) = dl_k/ds (metres of
+    lane k per metre of station) and a speed limit from its curvature kappa_k,
+    v_k(s) = sqrt(LATERAL_ACCEL / kappa_k(s)), lowered so that the speed never has to
+    change faster than CURVE_ACCEL: v_k(s) <= sqrt(v_k(s')^2 + 2 CURVE_ACCEL |s - s'|).
+    """
+
+    def __init__(self, route: _Route) -> None:
+        counts = {len(seg.lanes) for seg in route.segments}
+        if len(counts) != 1:
+            raise ConfigError("users who drive `along_lane` need a route of one lane count")
+        lanes = counts.pop()
+        self.grid = np.arange(0.0, route.length + 1.0, 1.0)
+        self.g = np.ones((lanes, len(self.grid)))
+        self.vmax = np.full((lanes, len(self.grid)), 100.0)
+        for k in range(lanes):
+            s_all, l_all, kappa_all = [], [], []
+            length = 0.0
+            for seg, s0 in zip(route.segments, route.starts, strict=True):
+                xy = np.asarray(seg.lanes[k].centerline.coords, dtype=np.float64)[:, :2]
+                chords = np.hypot(*np.diff(xy, axis=0).T)
+                angles = np.arctan2(*np.diff(xy, axis=0).T[::-1])
+                turn = np.abs((np.diff(angles) + math.pi) % (2.0 * math.pi) - math.pi)
+                kappa = np.zeros(len(xy))
+                kappa[1:-1] = turn / np.maximum((chords[:-1] + chords[1:]) / 2.0, 1e-6)
+                s_all.append(seg.frame_array(xy)[:, 0] + s0)
+                l_all.append(length + np.concatenate([[0.0], np.cumsum(chords)]))
+                kappa_all.append(kappa)
+                length += float(chords.sum())
+            s, lk, kappa = (np.concatenate(a) for a in (s_all, l_all, kappa_all))
+            order = np.argsort(s, kind="stable")
+            on_grid = np.interp(self.grid, s[order], lk[order])
+            self.g[k] = np.maximum(np.gradient(on_grid, self.grid), 0.05)
+            curv = np.interp(self.grid, s[order], kappa[order])
+            v = np.sqrt(LATERAL_ACCEL / np.maximum(curv, LATERAL_ACCEL / 100.0**2))
+            for i in range(len(v) - 2, -1, -1):
+                v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2.0 * CURVE_ACCEL))
+            for i in range(1, len(v)):
+                v[i] = min(v[i], math.sqrt(v[i - 1] ** 2 + 2.0 * CURVE_ACCEL))
+            self.vmax[k] = v
+
+    def at(self, station: float, d: float, offsets: np.ndarray) -> tuple[float, float]:
+        """(stretch, speed limit) at a station for lateral offset d, between two lanes
+        by linear blend of the stretch and the lower of the limits."""
+        i = min(max(round(station), 0), len(self.grid) - 1)
+        b = min(max(bisect.bisect_left(offsets.tolist(), d), 1), len(offsets) - 1)
+        a = max(b - 1, 0)
+        span = float(offsets[b] - offsets[a])
+        w = min(max((d - float(offsets[a])) / span, 0.0), 1.0) if span > 0.0 else 0.0
+        g = (1.0 - w) * self.g[a, i] + w * self.g[b, i]
+        vmax = (
+            self.vmax[a, i]
+            if w <= 0.0
+            else self.vmax[b, i]
+            if w >= 1.0
+            else min(self.vmax[a, i], self.vmax[b, i])
+        )
+        return float(g), float(vmax)
+
+    def stations(self, route: _Route, plan: UserPlan, end: float) -> tuple[np.ndarray, np.ndarray]:
+        """(times, stations) of an `along_lane` user every _STEP s from `enter` past `end`:
+        ds = +-min(dD / dt, v_max) dt / g, D the planned distance (`distance_driven`).
+        The blend between lanes takes each segment's lane offsets at its middle."""
+        times = np.arange(plan.enter, end + 2.0 * _STEP, _STEP)
+        planned = np.diff([distance_driven(plan, float(t)) for t in times], append=0.0)
+        stations = np.empty_like(times)
+        middles: dict[str, np.ndarray] = {}
+        s = plan.start
+        sign = -1.0 if plan.reverse else 1.0
+        for j, t in enumerate(times):
+            stations[j] = s
+            if planned[j] <= 0.0:
+                continue
+            segment, _ = route.locate(s)
+            offsets = middles.get(segment.id)
+            if offsets is None:
+                offsets = middles[segment.id] = segment.lane_offsets(segment.length / 2.0)
+            d, _ = _lateral(plan, float(t) + _STEP / 2.0, offsets)
+            g, vmax = self.at(s, d, offsets)
+            s += sign * min(float(planned[j]), vmax * _STEP) / g
+        return times, stations
+
+
 def _true_state(
-    route: _Route, plan: UserPlan, t: float
+    route: _Route, plan: UserPlan, t: float, table: tuple[np.ndarray, np.ndarray] | None = None
 ) -> tuple[float, float, str, int, Segment, float]:
-    station = plan.start + (-plan.speed if plan.reverse else plan.speed) * t
+    if table is not None:
+        station = float(np.interp(t, table[0], table[1]))
+    else:
+        station = plan.start + (-plan.speed if plan.reverse else plan.speed) * _cruising_time(
+            plan, t
+        )
     if not 0.0 <= station <= route.length:
         raise ConfigError(
             f"user {plan.user!r} runs off the end of the route at t={t:.1f} s; "
@@ -166,50 +422,176 @@ def _true_state(
     return e, n, segment.id, lane, segment, s
 
 
+def _events(
+    rng: np.random.Generator, rate: float, mean: float, start: float, end: float
+) -> list[tuple[float, float]]:
+    """(from, to) of a Poisson process of events of length U(0.5, 1.5) * mean."""
+    out: list[tuple[float, float]] = []
+    t = start
+    while rate > 0.0:
+        t += float(rng.exponential(1.0 / rate))
+        if t > end:
+            break
+        out.append((t, t + float(rng.uniform(0.5, 1.5)) * mean))
+    return out
+
+
+@dataclass(frozen=True)
+class _Receiver:
+    """A user's receiver events, drawn once from the second stream."""
+
+    multipath: list[tuple[float, float, float, float]]  # (from, to, m east, m north)
+    gaps: list[tuple[float, float]]
+
+    @classmethod
+    def draw(
+        cls, rng: np.random.Generator, errors: ErrorModel, start: float, end: float
+    ) -> _Receiver:
+        jumps = []
+        for a, b in _events(rng, errors.multipath_rate, errors.multipath_duration, start, end):
+            size = float(rng.uniform(0.5, 1.0)) * errors.multipath_offset
+            angle = float(rng.uniform(0.0, 2.0 * math.pi))
+            jumps.append((a, b, size * math.sin(angle), size * math.cos(angle)))
+        gaps = _events(rng, errors.gap_rate, errors.gap_duration, start, end)
+        return cls(jumps, gaps)
+
+    def offset(self, t: float) -> tuple[float, float]:
+        for a, b, de, dn in self.multipath:
+            if a <= t < b:
+                return de, dn
+        return 0.0, 0.0
+
+    def in_gap(self, t: float) -> bool:
+        return any(a <= t < b for a, b in self.gaps)
+
+
+def _own_times(scenario: Scenario) -> dict[str, dict[float, float]]:
+    """Users with a rate of their own: {user: {scenario time: own time}} of their fixes."""
+    out: dict[str, dict[float, float]] = {}
+    for p in scenario.users:
+        if p.rate is not None:
+            steps = math.floor(scenario.duration * p.rate + 1e-9) + 1
+            out[p.user] = {round(k / p.rate + p.phase, 6): k / p.rate for k in range(steps)}
+    return out
+
+
 def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) -> Trace:
     """Sample every user's fixes with errors drawn from `seed` (reproducible)."""
     rng = np.random.default_rng(seed)
+    extra = np.random.default_rng([seed, 1])  # the optional features' own stream
     route = _Route(hdmap, scenario.route)
     x0, y0, _x1, _y1 = hdmap.bounds
     convergence = hdmap.projection.convergence(*hdmap.projection.to_wgs84(x0, y0))
     period = 1.0 / scenario.rate
     steps = round(scenario.duration * scenario.rate) + 1
-    times = sorted({round(k * period + p.phase, 6) for k in range(steps) for p in scenario.users})
+    own = _own_times(scenario)
+    times = sorted(
+        {
+            round(k * period + p.phase, 6)
+            for k in range(steps)
+            for p in scenario.users
+            if p.rate is None
+        }.union(*(set(d) for d in own.values()))
+    )
+    receivers = {
+        p.user: _Receiver.draw(
+            extra, errors, p.enter, scenario.duration if p.leave is None else p.leave
+        )
+        for p in scenario.users
+    }
+    motion = _Motion(route) if any(p.along_lane for p in scenario.users) else None
+    tables = {
+        p.user: motion.stations(route, p, scenario.duration if p.leave is None else p.leave)
+        for p in scenario.users
+        if motion is not None and p.along_lane
+    }
     bias = np.array([errors.bias_east, errors.bias_north], dtype=float)
     last_t = 0.0
     fixes: list[SimulatedFix] = []
     plans = sorted(scenario.users, key=lambda p: p.phase)
+    shared = [p for p in plans if p.rate is None]  # at the scenario's rate: tested at each t
+    due: dict[float, list[UserPlan]] = {}  # at rates of their own: listed by time
+    for p in plans:
+        for t in own.get(p.user, ()):
+            due.setdefault(t, []).append(p)
     for t in times:
         if errors.bias_drift > 0.0 and t > last_t:
             bias = bias + rng.normal(0.0, errors.bias_drift * math.sqrt(t - last_t), 2)
         last_t = t
-        for plan in plans:
-            local = t - plan.phase
-            if abs(local / period - round(local / period)) > 1e-6 or local < -1e-9:
+        mine = due.get(t)
+        for plan in shared if mine is None else sorted([*shared, *mine], key=lambda p: p.phase):
+            end = scenario.duration if plan.leave is None else plan.leave
+            if plan.rate is None:
+                local = t - plan.phase
+                if abs(local / period - round(local / period)) > 1e-6 or local < -1e-9:
+                    continue
+            else:
+                local = own[plan.user][t]
+            if local > end + 1e-9 or local < plan.enter - 1e-9:
                 continue
-            if local > scenario.duration + 1e-9:
+            receiver = receivers[plan.user]
+            if errors.dropout_rate > 0.0 and extra.random() < errors.dropout_rate:
                 continue
-            e, n, seg_id, lane, _, _ = _true_state(route, plan, local)
-            e2, n2, *_ = _true_state(route, plan, min(local + 0.1, scenario.duration))
-            e0, n0, *_ = _true_state(route, plan, max(local - 0.1, 0.0))
-            heading = math.degrees(math.atan2(e2 - e0, n2 - n0)) % 360.0
-            speed = math.hypot(e2 - e0, n2 - n0) / (
-                min(local + 0.1, scenario.duration) - max(local - 0.1, 0.0)
-            )
-            me = e + bias[0] + rng.normal(0.0, errors.sigma_pos)
-            mn = n + bias[1] + rng.normal(0.0, errors.sigma_pos)
+            if receiver.in_gap(local):
+                continue
+            table = tables.get(plan.user)
+            e, n, seg_id, lane, segment, s = _true_state(route, plan, local, table)
+            hi, lo = min(local + 0.1, end), max(local - 0.1, plan.enter)
+            e2, n2, *_ = _true_state(route, plan, hi, table)
+            e0, n0, *_ = _true_state(route, plan, lo, table)
+            if math.hypot(e2 - e0, n2 - n0) > 1e-9:
+                heading = math.degrees(math.atan2(e2 - e0, n2 - n0)) % 360.0
+            else:  # standing still: the way it faces
+                heading = (segment.heading(s) + (180.0 if plan.reverse else 0.0)) % 360.0
+            speed = math.hypot(e2 - e0, n2 - n0) / (hi - lo)
+            sigma = errors.sigma_pos * plan.noise_scale
+            me = e + bias[0] + rng.normal(0.0, sigma)
+            mn = n + bias[1] + rng.normal(0.0, sigma)
+            if errors.outlier_rate > 0.0 and extra.random() < errors.outlier_rate:
+                me = (
+                    e + bias[0] + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
+                )
+                mn = (
+                    n + bias[1] + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
+                )
+            jump = receiver.offset(local)
+            me += plan.bias[0] + jump[0]
+            mn += plan.bias[1] + jump[1]
+            sigma_h = errors.sigma_heading
+            if errors.heading_per_speed > 0.0:
+                sigma_h = min(180.0, sigma_h + errors.heading_per_speed / max(speed, 0.1))
+            accuracy = None
+            if plan.accuracy_scale is not None:
+                level = plan.accuracy_scale * math.sqrt(2.0) * sigma
+                jitter = math.exp(float(extra.normal(0.0, errors.accuracy_jitter)))
+                accuracy = max(0.1, round(level * jitter, 1))
             lon, lat = hdmap.projection.to_wgs84(me, mn)
+            reported = (heading + convergence + rng.normal(0.0, sigma_h)) % 360.0
             measurement = GpsMeasurement(
                 timestamp=EPOCH_MS + round(t * 1000.0),
                 latitude=lat,
                 longitude=lon,
                 altitude=10.0,
                 # the receiver reports a true bearing: grid bearing + convergence
-                heading=(heading + convergence + rng.normal(0.0, errors.sigma_heading)) % 360.0,
+                heading=reported if reported < 360.0 else 0.0,
                 speed=max(0.0, speed + rng.normal(0.0, errors.sigma_vel)),
+                accuracy=accuracy,
             )
             fixes.append(
-                SimulatedFix(plan.user, plan.kind, measurement, e, n, heading, seg_id, lane)
+                SimulatedFix(
+                    plan.user,
+                    plan.kind,
+                    measurement,
+                    e,
+                    n,
+                    heading,
+                    seg_id,
+                    lane,
+                    float(bias[0]),
+                    float(bias[1]),
+                    plan.bias[0],
+                    plan.bias[1],
+                )
             )
     return Trace(scenario=scenario, errors=errors, seed=seed, fixes=tuple(fixes))
 

@@ -96,11 +96,18 @@ class EngineConfig(Settings):
             "is inflated as lane evidence, since successive filtered fixes share their errors"
         ),
     )
-    speed_memory: Positive = Field(
+    evidence_interval: Positive = Field(
+        default=1.0,
+        description=(
+            "default mode: a receiver's errors persist from fix to fix, so its lane evidence "
+            "counts at most once per this many seconds, however often it reports"
+        ),
+    )
+    motion_memory: Positive = Field(
         default=10.0,
         description=(
-            "default mode: how long (s) a user's speed stays what it was; the speed's "
-            "evidence about lane types counts once per this many seconds, not once per fix"
+            "default mode: how long (s) a user's direction and speed stay what they were; "
+            "their evidence about lanes counts once per this many seconds, not once per fix"
         ),
     )
     max_lane_change: Probability = Field(

@@ -17,11 +17,12 @@ probabilities *given* b, alpha_i(u, l) = P(l_i = l | u = n . b, fixes of i), on 
 grid of u. Given b the users' lanes are independent Markov chains, so one fix of user i
 does, exactly:
 
-    prediction   a(u, l) = sum_k alpha_i(u, k) T[k, l] * D[l] * S[l]^(dt / tau)
-                 (T: lane changes, announced by lateral motion; D: a lane whose
-                 direction opposes the motion; S: a lane type whose users never move
-                 at the fix's speed, counted once per tau = speed_memory seconds
-                 since speed is a lasting trait of a user; see `transition`)
+    prediction   a(u, l) = sum_k alpha_i(u, k) T[k, l] * F[l]^(dt / tau)
+                 (F[l] = D[l] S[l]: how well lane l fits the user's motion, its
+                 direction D and its type's speeds S, see `transition`; counted once
+                 per tau = motion_memory seconds, since motion is a lasting trait of a
+                 user. T: lane changes at a base rate, announced by lateral motion
+                 beyond its own noise, and never into a lane that does not fit)
     evidence     c(u)    = sum_l a(u, l) (eps + N(d_i - u - o_l; 0, s^2))
     common error log p(b) += log c(n . b)
     lanes        alpha_i(u, l) = a(u, l) (eps + N(d_i - u - o_l; 0, s^2)) / c(u)
@@ -56,7 +57,7 @@ from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.tracking import Track
-from laas.engine.transition import lane_prediction, speed_likelihood
+from laas.engine.transition import direction_likelihood, lane_transition, speed_likelihood
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -107,16 +108,28 @@ class CooperativeLaneFilter(LaneFilter):
         offsets = segment.lane_offsets(s_f)
         alpha = self._table(user, segment, area, normal, track.position)
 
-        # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] D[l] S[l]
-        transition, direction = lane_prediction(
-            segment, offsets, normal, track, c.lane_change_rate, c.max_lane_change
+        # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
+        # and its type's speeds.
+        v = track.velocity
+        fit = direction_likelihood(
+            tuple(lane.direction for lane in segment.lanes), float(v @ tangent)
+        ) * speed_likelihood(tuple(lane.type for lane in segment.lanes), track.last_fix.speed)
+        # Lane changes: announced by lateral motion beyond its own noise (2 sigma), and
+        # never into a lane that does not fit the motion (its share stays in the lane).
+        v_lat = float(v @ normal)
+        noise = 2.0 * math.sqrt(max(float(normal @ track.velocity_cov @ normal), 0.0))
+        lateral = math.copysign(max(0.0, abs(v_lat) - noise), v_lat)
+        transition = lane_transition(
+            offsets, lateral, track.dt, c.lane_change_rate, c.max_lane_change
         )
-        types = tuple(lane.type for lane in segment.lanes)
-        # The speed is a lasting trait of the user, not news at every fix: its evidence
-        # counts once per speed_memory seconds, S^(dt / speed_memory).
-        memory = min(1.0, track.dt / c.speed_memory)
-        speed = speed_likelihood(types, track.last_fix.speed) ** memory
-        a = (alpha @ transition) * (direction * speed)
+        transition *= fit[None, :] / fit.max()
+        np.fill_diagonal(transition, 0.0)
+        np.fill_diagonal(transition, 1.0 - transition.sum(axis=1))
+        # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] F[l]^(dt / tau). Motion is a
+        # lasting trait of the user, not news at every fix: it counts once per
+        # tau = motion_memory seconds.
+        memory = min(1.0, track.dt / c.motion_memory)
+        a = (alpha @ transition) * fit**memory
 
         # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
         # s^2 = s_lane^2 + k n'P n. Successive filtered fixes share their errors, so each
@@ -126,6 +139,11 @@ class CooperativeLaneFilter(LaneFilter):
         s = math.sqrt(c.sigma_lane**2 + k * float(normal @ track.position_cov @ normal))
         r = (d_f - area.u.values)[:, None] - offsets[None, :]
         like = _OFF_LANE + np.exp(-0.5 * (r / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
+        # A receiver's errors persist from fix to fix at any rate: however often it
+        # reports, its evidence counts at most once per evidence_interval seconds,
+        # like^w with w = min(1, dt / evidence_interval).
+        w = 1.0 if track.dt <= 0.0 else min(1.0, track.dt / c.evidence_interval)
+        like = like**w
         joint = a * like
         c_u = joint.sum(axis=1)
         area.update(normal, np.log(np.maximum(c_u, 1e-300)))

@@ -66,12 +66,13 @@ class Track:
 
     def _measurement_noise(self, fix: Fix) -> np.ndarray:
         """R: sigma_pos^2 on the position; on the velocity, speed noise along the heading
-        and s^2 sigma_h^2 across it:  R_v = sigma_v^2 t t' + s^2 sigma_h^2 n n'."""
+        and across it the heading's error s sigma_h plus the speed noise again, since a GNSS
+        course over ground comes from a velocity vector whose every component carries it
+        (so a slow user's heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n'."""
         c = self._config
-        t = np.array([math.sin(fix.heading), math.cos(fix.heading)])
         nrm = np.array([math.cos(fix.heading), -math.sin(fix.heading)])
         sigma_h = math.radians(c.sigma_heading)
-        r_v = c.sigma_vel**2 * np.outer(t, t) + (fix.speed * sigma_h) ** 2 * np.outer(nrm, nrm)
+        r_v = c.sigma_vel**2 * np.eye(2) + (fix.speed * sigma_h) ** 2 * np.outer(nrm, nrm)
         r = np.zeros((4, 4))
         sigma_pos = fix.accuracy if fix.accuracy is not None else c.sigma_pos
         r[0, 0] = r[1, 1] = sigma_pos**2
@@ -124,6 +125,11 @@ class Track:
     def velocity(self) -> np.ndarray:
         """(v_e, v_n) at the time of the last fix, m/s."""
         return np.asarray(self._kf.x[2:, 0], dtype=float)
+
+    @property
+    def velocity_cov(self) -> np.ndarray:
+        """2x2 covariance of the velocity, m^2/s^2."""
+        return np.asarray(self._kf.P[2:, 2:], dtype=float)
 
     @property
     def position_cov(self) -> np.ndarray:

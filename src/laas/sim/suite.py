@@ -57,6 +57,7 @@ __all__ = [
     "run_case",
     "run_suite",
     "sigma_vel_for",
+    "simulate_case",
     "suite_plots",
     "summarize",
     "worst_run",
@@ -247,7 +248,8 @@ def _answerers(sigma_pos: float) -> dict[Method, tuple[Answerer, EngineConfig]]:
     }
 
 
-def _simulate(family: str, seed: int, sigma_pos: float) -> tuple[FamilyCase, Trace]:
+def simulate_case(family: str, seed: int, sigma_pos: float) -> tuple[FamilyCase, Trace]:
+    """The case of (family, seed) and its trace at sigma_pos (the suite's sigma_vel)."""
     case = build_case(family, seed)
     sigma_vel = sigma_vel_for(sigma_pos)
     trace = simulate_with(case.hdmap, case.scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
@@ -256,7 +258,7 @@ def _simulate(family: str, seed: int, sigma_pos: float) -> tuple[FamilyCase, Tra
 
 def run_case(family: str, seed: int, sigma_pos: float) -> SuiteRow:
     """Build, simulate and answer one run three ways (see the module docstring)."""
-    case, trace = _simulate(family, seed, sigma_pos)
+    case, trace = simulate_case(family, seed, sigma_pos)
     methods: dict[str, MethodScore] = {}
     raw = math.nan
     for method, (answer, config) in _answerers(sigma_pos).items():
@@ -316,7 +318,7 @@ def suite_plots(row: SuiteRow, out: Path) -> list[Path]:
     """The pictures of one run: the traces on the lanes, and each method's lanes over time."""
     from laas.sim.plots import plot_lanes_over_time, plot_traces
 
-    case, trace = _simulate(row.family, row.seed, row.sigma_pos)
+    case, trace = simulate_case(row.family, row.seed, row.sigma_pos)
     out.mkdir(parents=True, exist_ok=True)
     name = f"{row.family}-{row.seed}-s{row.sigma_pos:g}"
     paths = [plot_traces(case.hdmap, trace, out / f"{name}-traces.png")]

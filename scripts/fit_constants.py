@@ -7,7 +7,8 @@ mean lane accuracy of default mode over the development suite's first `--seeds` 
 every family at both of its sigma_pos values (the held-out suite is never run here). Each
 round tries every candidate of one constant with the others held at their current best,
 and keeps the best; two rounds over all constants. The candidates span what each
-constant means physically (see EngineConfig): a lane change every 10 s to every 200 s,
+constant means physically (see EngineConfig): a receiver's own lasting error from a
+quarter of a metre to a metre, a lane change every 10 s to every 200 s,
 filtered evidence worth its covariance to a quarter of it, a receiver's errors
 persisting 0.2-3 s, a user's motion persisting 3-30 s.
 
@@ -30,6 +31,7 @@ from laas.sim.score import answer_trace, score
 from laas.sim.suite import engine_config, get_suite, simulate_case
 
 CANDIDATES: dict[str, tuple[float, ...]] = {
+    "sigma_receiver": (0.25, 0.5, 1.0),
     "lane_change_rate": (0.005, 0.02, 0.05, 0.1),
     "filtered_inflation": (1.0, 2.0, 4.0),
     "evidence_interval": (0.2, 1.0, 3.0),

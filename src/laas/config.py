@@ -96,6 +96,13 @@ class EngineConfig(Settings):
             "is inflated as lane evidence, since successive filtered fixes share their errors"
         ),
     )
+    sigma_receiver: NonNegative = Field(
+        default=0.5,
+        description=(
+            "default mode: 1-sigma of a receiver's own lasting error across the road (its "
+            "bias and multipath, which no filtering removes), m"
+        ),
+    )
     evidence_interval: Positive = Field(
         default=1.0,
         description=(

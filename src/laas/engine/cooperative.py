@@ -5,10 +5,11 @@ the area shares (`CommonError`, a grid posterior), and the receiver's own error.
 on lane l of a road with unit normal n (to the right) and lane centres o_l lies at
 lateral offset o_l, so its filtered position's offset d_i, measured with b = 0, is
 
-    d_i = o_l + u + e,   u = n . b,   e ~ N(0, s^2),   s^2 = s_lane^2 + k n' P_i n
+    d_i = o_l + u + e,   u = n . b,   e ~ N(0, s^2),   s^2 = s_lane^2 + s_rx^2 + k n' P_i n
 
-with P_i the covariance of the user's Kalman-filtered position and k > 1 because
-successive filtered fixes share their errors (`filtered_inflation`).
+with P_i the covariance of the user's Kalman-filtered position, s_rx the receiver's own
+lasting error (bias, multipath; `sigma_receiver`) and k > 1 because successive filtered
+fixes share their errors (`filtered_inflation`).
 
 Which lane a user is on and what b is explain the same fixes: moving b by a lane width
 and every user by one lane fits them as well. They are therefore estimated together,
@@ -132,11 +133,14 @@ class CooperativeLaneFilter(LaneFilter):
         a = (alpha @ transition) * fit**memory
 
         # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
-        # s^2 = s_lane^2 + k n'P n. Successive filtered fixes share their errors, so each
+        # s^2 = s_lane^2 + s_rx^2 + k n'P n (s_rx: the receiver's own lasting error, which
+        # no filtering removes). Successive filtered fixes share their errors, so each
         # counts as weaker evidence than its covariance says (k = filtered_inflation; a
         # raw fix, the Kalman filter off, has independent noise and k = 1).
         k = c.filtered_inflation if c.kalman else 1.0
-        s = math.sqrt(c.sigma_lane**2 + k * float(normal @ track.position_cov @ normal))
+        s = math.sqrt(
+            c.sigma_lane**2 + c.sigma_receiver**2 + k * float(normal @ track.position_cov @ normal)
+        )
         r = (d_f - area.u.values)[:, None] - offsets[None, :]
         like = _OFF_LANE + np.exp(-0.5 * (r / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
         # A receiver's errors persist from fix to fix at any rate: however often it

@@ -9,8 +9,8 @@ round tries every candidate of one constant with the others held at their curren
 and keeps the best; two rounds over all constants. The candidates span what each
 constant means physically (see EngineConfig): a receiver's own lasting error from a
 quarter of a metre to a metre, a lane change every 10 s to every 200 s,
-filtered evidence worth its covariance to a quarter of it, a receiver's errors
-persisting 0.2-3 s, a user's motion persisting 3-30 s.
+filtered evidence worth its covariance to an eighth of it, a receiver's errors
+persisting 0.2-6 s, a user's motion persisting 1-30 s.
 
 It prints every configuration tried and the best; copy the best into EngineConfig's
 defaults by hand, and say so in the commit.
@@ -33,9 +33,9 @@ from laas.sim.suite import engine_config, get_suite, simulate_case
 CANDIDATES: dict[str, tuple[float, ...]] = {
     "sigma_receiver": (0.25, 0.5, 1.0),
     "lane_change_rate": (0.005, 0.02, 0.05, 0.1),
-    "filtered_inflation": (1.0, 2.0, 4.0),
-    "evidence_interval": (0.2, 1.0, 3.0),
-    "motion_memory": (3.0, 10.0, 30.0),
+    "filtered_inflation": (1.0, 2.0, 4.0, 8.0),
+    "evidence_interval": (0.2, 1.0, 3.0, 6.0),
+    "motion_memory": (1.0, 3.0, 10.0, 30.0),
 }
 
 

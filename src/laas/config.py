@@ -90,7 +90,7 @@ class EngineConfig(Settings):
         ),
     )
     filtered_inflation: Annotated[float, Field(ge=1.0, allow_inf_nan=False)] = Field(
-        default=2.0,
+        default=4.0,
         description=(
             "default mode, with the Kalman filter on: how much the filtered lateral variance "
             "is inflated as lane evidence, since successive filtered fixes share their errors"
@@ -104,14 +104,14 @@ class EngineConfig(Settings):
         ),
     )
     evidence_interval: Positive = Field(
-        default=1.0,
+        default=3.0,
         description=(
             "default mode: a receiver's errors persist from fix to fix, so its lane evidence "
             "counts at most once per this many seconds, however often it reports"
         ),
     )
     motion_memory: Positive = Field(
-        default=10.0,
+        default=1.0,
         description=(
             "default mode: how long (s) a user's direction and speed stay what they were; "
             "their evidence about lanes counts once per this many seconds, not once per fix"

@@ -99,6 +99,11 @@ SUITES: dict[str, Suite] = {
         description="held out: seeds 1000-1039 of each family (report on these, never tune)",
         cases=tuple((f, _HELDOUT_SEEDS) for f in FAMILIES),
     ),
+    "ci": Suite(
+        name="ci",
+        description="the test suite's guard: seeds 0-7 of each family (a dev subset)",
+        cases=tuple((f, _DEV_SEEDS[:8]) for f in FAMILIES),
+    ),
     "smoke": Suite(
         name="smoke",
         description="a quick check: six small dev scenarios at sigma_pos 1.0",

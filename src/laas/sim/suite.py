@@ -417,6 +417,34 @@ def worst_run(rows: Sequence[SuiteRow]) -> SuiteRow:
     )
 
 
+USER_BANDS = ((1, 2), (3, 4), (5, 9), (10, 1_000))
+"""Bands of users per scenario: how much the group can tell about the common error."""
+
+
+def _by_users(rows: Sequence[SuiteRow]) -> list[str]:
+    """Lane accuracy by the number of users in the scenario, over all families."""
+    lines = ["by users per scenario (all families): lane accuracy median / p10 / worst"]
+    for sp in sorted({r.sigma_pos for r in rows}):
+        for lo, hi in USER_BANDS:
+            mine = [r for r in rows if r.sigma_pos == sp and lo <= r.users <= hi]
+            if not mine:
+                continue
+            acc = np.array([r.methods["default"].accuracy for r in mine])
+            oracle = np.nanmedian([r.methods["oracle"].accuracy for r in mine])
+            below = sum(
+                r.methods["default"].accuracy < r.methods["paper"].accuracy - 0.05 for r in mine
+            )
+            band = f"{lo}-{hi}" if hi < 1_000 else f"{lo}+"
+            lines.append(
+                f"  s_pos {sp:g} users {band:<5} runs {len(mine):>3}: default "
+                f"{np.nanmedian(acc):.3f} / {np.nanpercentile(acc, 10):.2f} / "
+                f"{np.nanmin(acc):.2f}; oracle median {oracle:.3f}; default below paper "
+                f"by > 0.05: {below}"
+            )
+    lines.append("")
+    return lines
+
+
 def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None = None) -> str:
     """The suite's distributions per family and sigma_pos, one line per method."""
     fixes = sum(r.fixes for r in rows)
@@ -450,6 +478,7 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
         )
         if s.family == "all":
             lines.append("")
+    lines.extend(_by_users(rows))
     worst = worst_run(rows)
     lines.append(
         f"worst run (default mode): {worst.family} seed {worst.seed} at sigma_pos "

@@ -169,10 +169,6 @@ class CommonError:
             return self.b.copy(), self.P.copy()
         return self._stats(w / total)
 
-    def sigma_along(self, direction: np.ndarray) -> float:
-        """1-sigma of b along a unit direction, m."""
-        return math.sqrt(max(float(direction @ self.P @ direction), 0.0))
-
 
 class CommonErrorField:
     """One `CommonError` per area: a fix joins the nearest area centre within

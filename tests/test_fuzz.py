@@ -504,8 +504,8 @@ def test_worker_measurement_decoder(
     assert "error" not in worker.handle(
         Request("alice", "c", fix(int(time.time() * 1000)), 0.0, True)
     )
-    alice = worker.engine._users["alice"]
-    t_alice, x_alice = alice.track.t, alice.track.position.copy()
+    alice = worker.engine._tracks["alice"]
+    t_alice, x_alice = alice.t, alice.position.copy()
     s = worker.stats
     for payload, pseudonym in batch:
         outcomes = s.answered + s.invalid + s.refused + s.outside + s.clock + s.failed
@@ -515,8 +515,8 @@ def test_worker_measurement_decoder(
             assert set(reply["error"]) == {"kind", "message", "fields"}
         json.dumps(reply, allow_nan=False)  # every reply can go on the wire
     assert s.failed == 0
-    assert worker.engine._users["alice"] is alice
-    assert alice.track.t == t_alice and (alice.track.position == x_alice).all()
+    assert worker.engine._tracks["alice"] is alice
+    assert alice.t == t_alice and (alice.position == x_alice).all()
 
 
 # --- files: the trace reader and the map loader ------------------------------------

@@ -42,11 +42,6 @@ class EngineStats:
     expired: int = 0
 
 
-@dataclass
-class _User:
-    track: Track
-
-
 class Engine:
     """Lane-level positions for many road users on one HD map."""
 
@@ -54,7 +49,7 @@ class Engine:
         self.map = hdmap
         self.config = config or EngineConfig()
         self.stats = EngineStats()
-        self._users: dict[str, _User] = {}
+        self._tracks: dict[str, Track] = {}
         self._lanes = make_lane_filter(self.config)
         # GNSS headings are true bearings; the map's frame is the UTM grid. Over one map
         # the meridian convergence (grid = true - convergence) is as good as constant.
@@ -65,7 +60,7 @@ class Engine:
     @property
     def users(self) -> int:
         """How many users have a live track."""
-        return len(self._users)
+        return len(self._tracks)
 
     def common_errors(self) -> list[CommonError]:
         """The common-error estimates per area (empty in paper mode)."""
@@ -83,12 +78,12 @@ class Engine:
             heading=math.radians(measurement.heading) - self._convergence,
             accuracy=None if measurement.accuracy is None else measurement.accuracy / math.sqrt(2),
         )
-        state = self._users.get(user)
-        if state is None:
-            state = self._users[user] = _User(Track(c, fix))
+        track = self._tracks.get(user)
+        if track is None:
+            track = self._tracks[user] = Track(c, fix)
             self.stats.started += 1
         else:
-            outcome = state.track.update(fix)
+            outcome = track.update(fix)
             if outcome is TrackUpdate.DUPLICATE:
                 self.stats.duplicate += 1
                 return None
@@ -98,21 +93,21 @@ class Engine:
             if outcome is TrackUpdate.RESTARTED:
                 self.stats.restarted += 1
                 self._lanes.leave(user)
-        b, b_cov = self._lanes.correction(state.track.position, fix.t)
-        q = state.track.position - b
+        b, b_cov = self._lanes.correction(track.position, fix.t)
+        q = track.position - b
         segment = self.map.locate(float(q[0]), float(q[1]), c.max_map_distance)
         self.stats.answered += 1
         if segment is None:
             self._lanes.leave(user)
             self.stats.off_map += 1
-            return self._off_map(measurement, q, state.track.position_cov + b_cov)
-        placed = self._lanes.step(user, state.track, segment, fix.t)
-        return self._answer(measurement, segment, placed, state.track)
+            return self._off_map(measurement, q, track.position_cov + b_cov)
+        placed = self._lanes.step(user, track, segment, fix.t)
+        return self._answer(measurement, segment, placed, track)
 
     def expire(self, now_ms: int) -> list[str]:
         """Forget users whose last fix is older than `track_timeout`; return them."""
         now = now_ms / 1000.0
-        gone = [u for u, s in self._users.items() if now - s.track.t > self.config.track_timeout]
+        gone = [u for u, tr in self._tracks.items() if now - tr.t > self.config.track_timeout]
         for user in gone:
             self.forget(user, expired=True)
         return gone
@@ -120,7 +115,7 @@ class Engine:
     def forget(self, user: str, *, expired: bool = False) -> None:
         """Drop a user's track and its lane state (a rotated pseudonym, say);
         `expired` counts it as an expiry (the live worker expires by its own clock)."""
-        if self._users.pop(user, None) is not None:
+        if self._tracks.pop(user, None) is not None:
             self._lanes.leave(user)
             self.stats.expired += expired
 

@@ -27,7 +27,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.tracking import Track
-from laas.engine.transition import lane_prediction
+from laas.engine.transition import direction_likelihood, lane_transition
 from laas.map.hdmap import Segment
 
 __all__ = ["JointHypothesisFilter", "PaperLaneFilter"]
@@ -128,6 +128,24 @@ class JointHypothesisFilter:
         return lane, float(self.marginal(user)[lane])
 
 
+def _prediction(
+    segment: Segment,
+    offsets: np.ndarray,
+    normal: np.ndarray,
+    track: Track,
+    rate: float,
+    p_max: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Section IV-D's prediction for a user's own step in `segment`, where the road has
+    lane centres `offsets` and unit normal n: (T[from, to], wrong-way factor per lane)
+    from its velocity across (v . n) and along (v . t) the road since its last fix."""
+    v = track.velocity
+    tangent = np.array([-normal[1], normal[0]])
+    transition = lane_transition(offsets, float(v @ normal), track.dt, rate, p_max)
+    directions = tuple(lane.direction for lane in segment.lanes)
+    return transition, direction_likelihood(directions, float(v @ tangent))
+
+
 @dataclass
 class _Place:
     """Where a user was in its segment at its own last step."""
@@ -220,7 +238,7 @@ class PaperLaneFilter(LaneFilter):
         lateral_var = float(normal @ track.position_cov @ normal)
         self._places[user] = _Place(t, p, track.velocity, s, d, offsets, normal, lateral_var)
         self._seen[user] = track.t
-        transition, direction = lane_prediction(
+        transition, direction = _prediction(
             segment, offsets, normal, track, c.paper_lane_change_rate, c.max_lane_change
         )
         # c_v[l] = p_v + (o_l - d_v) n_v: each user's filtered fix moved across onto lane l.

@@ -31,13 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from laas.engine.tracking import Track
-from laas.map.hdmap import Segment
-
 __all__ = [
     "SPEED_LIMITS",
     "direction_likelihood",
-    "lane_prediction",
     "lane_transition",
     "speed_likelihood",
 ]
@@ -108,21 +104,3 @@ def speed_likelihood(types: tuple[str, ...], speed: float) -> np.ndarray:
             z = min((speed - v_max) / width, 50.0)
             out[i] = floor + (1.0 - floor) / (1.0 + np.exp(z))
     return out
-
-
-def lane_prediction(
-    segment: Segment,
-    offsets: np.ndarray,
-    normal: np.ndarray,
-    track: Track,
-    rate: float,
-    p_max: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """A user's own step in `segment`, where the road has lane centres `offsets` and unit
-    normal n: (T[from, to], wrong-way factor per lane) from its velocity across (v . n)
-    and along (v . t) the road, over the time since its last fix."""
-    v = track.velocity
-    tangent = np.array([-normal[1], normal[0]])
-    transition = lane_transition(offsets, float(v @ normal), track.dt, rate, p_max)
-    directions = tuple(lane.direction for lane in segment.lanes)
-    return transition, direction_likelihood(directions, float(v @ tangent))

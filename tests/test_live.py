@@ -34,7 +34,7 @@ def test_live_accuracy_matches_offline_replay(
     with LocalDeployment(
         hamburg_map, CONFIG, brokers=broker_kind, rotation_period=rotation_period
     ) as deployment:
-        live = run_participants(deployment.user_url, trace, speedup=20.0)
+        live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
         assert deployment.service is not None
         assert deployment.service.stats.answered == len(trace.fixes)
     assert live.errors == []
@@ -53,7 +53,7 @@ def test_rotation_costs_little_accuracy(hamburg_map: HdMap) -> None:
     with LocalDeployment(
         hamburg_map, CONFIG, brokers="embedded", rotation_period=1.5
     ) as deployment:
-        live = run_participants(deployment.user_url, trace, speedup=20.0)
+        live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
         assert deployment.cores["user"].stats.rotations > 0  # pseudonyms did rotate
     assert live.answered == len(trace.fixes), live.errors[:3]
     online = score(hamburg_map, trace, live.answers)

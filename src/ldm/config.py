@@ -7,6 +7,7 @@ Durations are seconds.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any, Self, TypeVar
 from urllib.parse import urlsplit
@@ -112,6 +113,27 @@ def _url_as_broker(value: object) -> object:
     return {"url": value} if isinstance(value, str) else value
 
 
+_B64_KEY = r"^[A-Za-z0-9+/]{43}=$"
+
+
+def _keys(value: dict[str, str]) -> dict[str, str]:
+    for service, key in value.items():
+        _name(service)
+        if not re.fullmatch(_B64_KEY, key):
+            raise ValueError(
+                f"{service}: {key!r} is not an Ed25519 public key (base64 of 32 bytes, "
+                "as `ldm keys show FILE` prints it)"
+            )
+    return value
+
+
+def _anchors(value: list[str]) -> list[str]:
+    for key in value:
+        if not re.fullmatch(_B64_KEY, key):
+            raise ValueError(f"{key!r} is not an Ed25519 public key (base64 of 32 bytes)")
+    return value
+
+
 def _name(value: str) -> str:
     if not NAME_PATTERN.match(value):
         raise ValueError("use 1-128 characters from letters, digits and . _ : -")
@@ -155,8 +177,18 @@ class CoreConfig(_Settings):
     max_clock_skew: float = Field(default=30.0, gt=0)
     max_queue: int = Field(default=100_000, ge=1)
     """Messages waiting for the core's worker; more are dropped (``dropped_overload``)."""
+    identity_file: Path | None = None
+    """The core's Ed25519 key (PEM; made there if missing), with which it signs its
+    notices and service lists; None: a new key each start (participants cannot pin it)."""
+    service_keys: dict[str, str] = Field(default_factory=dict)
+    """Service name -> pinned identity key: only announcements signed by it are taken."""
+    anchors: list[str] = Field(default_factory=list)
+    """Trust anchors whose endorsement makes a service identity trusted. With neither
+    pins nor anchors, any announcement on the cluster's announce topics is taken."""
 
     _check_name = field_validator("name")(_name)
+    _check_keys = field_validator("service_keys")(_keys)
+    _check_anchors = field_validator("anchors")(_anchors)
 
     _check_brokers = field_validator("cluster", "backbone", mode="before")(_url_as_broker)
 
@@ -195,6 +227,11 @@ class ProviderConfig(_Settings):
     max_queue: int = Field(default=10_000, ge=1)
     max_payload: int = Field(default=64 * 1024, ge=256)
     cipher_cache: int = Field(default=50_000, ge=1)
+    identity_file: Path | None = None
+    """The service's Ed25519 identity key (PEM; made there if missing), which signs its
+    description and announcements; None: a new identity each start."""
+    endorsement: str | None = Field(default=None, pattern=r"^[A-Za-z0-9+/=]{88}$")
+    """A trust anchor's endorsement of the identity (`ldm keys endorse`)."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
 
@@ -209,7 +246,20 @@ class ParticipantConfig(_Settings):
     max_age: float = Field(default=2.0, gt=0)
     data_qos: int | None = Field(default=None, ge=0, le=2)
     """QoS of input messages; None takes the core's value from the session grant."""
+    service_keys: dict[str, str] = Field(default_factory=dict)
+    """Service name -> the service's pinned identity key (`ldm keys show FILE`)."""
+    anchors: list[str] = Field(default_factory=list)
+    """Trust anchors: a service whose identity one of them endorsed is trusted.
+    With neither pins nor anchors the participant trusts whatever key its core hands
+    it, and so trusts the core and the brokers with what it sends (docs/security.md)."""
+    core_key: str | None = Field(default=None, pattern=_B64_KEY)
+    """The user core's pinned Ed25519 key: then only notices and service lists it
+    signed act; unsigned or forged ones change nothing."""
+    notice_window: float = Field(default=30.0, gt=0)
+    """A signed notice older (or further ahead) than this is ignored as a replay."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
+    _check_keys = field_validator("service_keys")(_keys)
+    _check_anchors = field_validator("anchors")(_anchors)
 
     _check_broker = field_validator("broker", mode="before")(_url_as_broker)

@@ -27,12 +27,14 @@ import logging
 import secrets
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from pydantic import ValidationError
 
 from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, CoreConfig, build
+from ldm.identity import SigningKey
 from ldm.messages import (
     Announcement,
     CoreStatus,
@@ -45,6 +47,7 @@ from ldm.messages import (
     SessionRequest,
 )
 from ldm.transport import Connected, Event, Message, Transport, Will
+from ldm.trust import Trust
 
 __all__ = ["Core", "CoreStats"]
 
@@ -55,6 +58,7 @@ _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _TOKEN = topics.TOKEN_PATTERN
 _NOTICE_RATE = 10.0  # rejection notices per second and client, so refusing costs little
+_REPAIR_RATE = 5.0  # service-list repairs per second: a second core on the broker cannot loop us
 
 
 def new_pseudonym() -> str:
@@ -67,6 +71,7 @@ class _Service:
     description: ServiceDescription
     origin: str
     expires: float
+    sig: str | None = None  # the announcement's signature, passed on to the backbone
 
 
 @dataclass(slots=True)
@@ -144,7 +149,12 @@ class CoreStats:
     notices_suppressed: int = 0
     """Refusals not answered because the client's notice bucket was empty."""
     control: int = 0
-    """Announcements, withdrawals and core statuses taken (valid, fresh)."""
+    """Announcements, withdrawals and core statuses taken (valid, fresh), and this
+    core's own service list seen back from the broker."""
+    dropped_untrusted: int = 0
+    """Announcements not signed by a pinned or endorsed identity (with trust set)."""
+    repaired_list: int = 0
+    """Service lists on the cluster that were not this core's own, replaced by it."""
     rotations: int = 0
     sessions_expired: int = 0
 
@@ -163,10 +173,15 @@ class Core(Worker[Event]):
         self._routes: dict[str, _Route] = {}
         self._limits: dict[str, _Limits] = {}
         self._published_list: list[ServiceDescription] | None = None
+        self._list_payload = b""  # the retained list as this core last published it
+        self._repairs = _Bucket(_REPAIR_RATE, 0.0)
+        path = config.identity_file
+        self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
+        self.trust = Trust(config.service_keys, config.anchors)
         self.cluster = Transport(
             config.cluster, client_id=f"ldm-core-{self.name}", sink=self.sink, name=_CLUSTER
         )
-        for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER):
+        for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER, topics.SERVICES):
             self.cluster.subscribe(flt, 1)
         self.cluster.subscribe(topics.PROVIDER_REPLY_FILTER, config.data_qos)
         self.backbone: Transport | None = None
@@ -190,7 +205,7 @@ class Core(Worker[Event]):
         name: str,
         cluster: BrokerSettings | str,
         backbone: BrokerSettings | str | None = None,
-        **settings: float | int,
+        **settings: Any,
     ) -> Core:
         """Build a core from URLs or settings plus any CoreConfig field."""
         return cls(
@@ -236,6 +251,11 @@ class Core(Worker[Event]):
     def services(self) -> list[ServiceDescription]:
         """A snapshot of the services this core knows (read from any thread)."""
         return [s.description for s in list(self._services.values())]
+
+    @property
+    def public_key(self) -> str:
+        """The core's Ed25519 public key: participants pin it (``core_key``)."""
+        return self.identity.public
 
     @property
     def session_count(self) -> int:
@@ -294,6 +314,8 @@ class Core(Worker[Event]):
             self._local_announcement(levels[2], msg.payload)
         elif levels[1] == "svc" and len(levels) == 5 and levels[3] == "out":
             self._reply(levels[2], levels[4], Envelope.model_validate_json(msg.payload))
+        elif msg.topic == topics.SERVICES:
+            self._check_list(msg.payload)
         else:
             self.stats.dropped_invalid += 1
 
@@ -438,21 +460,46 @@ class Core(Worker[Event]):
         if ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        expires = ann.t + self.config.service_ttl
-        if expires <= time.time():
-            self.stats.dropped_stale += 1  # a retained announcement of a provider that is gone
+        if not self._acceptable(ann):
             return
         self.stats.control += 1
-        svc = _Service(ann.service, self.name, expires)
+        svc = _Service(ann.service, self.name, ann.t + self.config.service_ttl, ann.sig)
         self._services[service] = svc
-        self._announce_backbone(service, svc, ann.t)
+        self._announce_backbone(service, svc)
         self._publish_list()
 
-    def _announce_backbone(self, service: str, svc: _Service, t: float | None = None) -> None:
+    def _acceptable(self, ann: Announcement) -> bool:
+        """Fresh, not from the future, and signed by a trusted identity (else counted).
+
+        A time ahead of the clock would make a retained announcement outlive its
+        provider; ``max_clock_skew`` is the same limit participants' input has.
+        """
+        now = time.time()
+        if ann.t > now + self.config.max_clock_skew:
+            self.stats.dropped_invalid += 1
+            log.warning(
+                "%s: announcement of %s from the future dropped", self.name, ann.service.name
+            )
+            return False
+        if ann.t + self.config.service_ttl <= now:
+            self.stats.dropped_stale += 1  # a retained announcement of a provider that is gone
+            return False
+        if not self.trust.announcement(ann):
+            self.stats.dropped_untrusted += 1
+            log.warning(
+                "%s: announcement of %s dropped: %s",
+                self.name,
+                ann.service.name,
+                self.trust.problem(ann.service) or "its time is not signed by its identity",
+            )
+            return False
+        return True
+
+    def _announce_backbone(self, service: str, svc: _Service) -> None:
         if self.backbone is None:
             return
-        stamp = svc.expires - self.config.service_ttl if t is None else t
-        ann = Announcement(service=svc.description, t=stamp, origin=self.name)
+        stamp = svc.expires - self.config.service_ttl
+        ann = Announcement(service=svc.description, t=stamp, origin=self.name, sig=svc.sig)
         self.backbone.publish(
             topics.bb_announce(service), ann.model_dump_json().encode(), qos=1, retain=True
         )
@@ -468,15 +515,14 @@ class Core(Worker[Event]):
         if ann.origin is None or ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        expires = ann.t + self.config.service_ttl
-        if expires <= time.time():
-            self.stats.dropped_stale += 1
+        if not self._acceptable(ann):
             return
         self.stats.control += 1
         current = self._services.get(service)
         if ann.origin == self.name or (current is not None and current.origin == self.name):
             return  # our own, back from the backbone; or a local provider wins over a remote one
-        self._services[service] = _Service(ann.service, ann.origin, expires)
+        expires = ann.t + self.config.service_ttl
+        self._services[service] = _Service(ann.service, ann.origin, expires, ann.sig)
         self._publish_list()
 
     def _remove_service(self, service: str) -> None:
@@ -501,12 +547,32 @@ class Core(Worker[Event]):
         if services == self._published_list:
             return
         self._published_list = services
-        payload = ServiceList(t=time.time(), services=services).model_dump_json().encode()
-        self.cluster.publish(topics.SERVICES, payload, qos=1, retain=True)
+        listing = ServiceList(t=time.time(), services=services, core=self.identity.public)
+        listing = listing.model_copy(update={"sig": self.identity.sign(listing.signed_text())})
+        self._list_payload = listing.model_dump_json().encode()
+        self.cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)
+
+    def _check_list(self, payload: bytes) -> None:
+        """The retained list on the cluster must be this core's: if not, publish it again.
+
+        Anyone who can write ``ldm/services`` (a broker without ACL) could replace it;
+        the core sees the change one broker round trip later and puts its own back, so
+        a tampered list stands for milliseconds, not until the next change.
+        """
+        if payload == self._list_payload or self._published_list is None:
+            self.stats.control += 1  # our own, or before we published (it follows)
+            return
+        self.stats.repaired_list += 1
+        if self._repairs.take(time.time(), _REPAIR_RATE, _REPAIR_RATE):
+            log.warning("%s: the service list on the cluster was not ours; repaired", self.name)
+            self.cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)
 
     # --- participant sessions ---------------------------------------------------------
 
     def _notify(self, client: str, notice: SessionNotice) -> None:
+        """Send a notice to one participant, addressed, timed and signed by this core."""
+        notice = notice.model_copy(update={"to": client, "t": time.time()})
+        notice = notice.model_copy(update={"sig": self.identity.sign(notice.signed_text())})
         payload = notice.model_dump_json(exclude_none=True).encode()
         self.cluster.publish(topics.session_notice(client), payload, qos=1)
 
@@ -536,6 +602,7 @@ class Core(Worker[Event]):
             idle_timeout=cfg.idle_timeout,
             max_age=cfg.max_age,
             data_qos=cfg.data_qos,
+            rekey_interval=cfg.rekey_interval,
         )
         self.stats.granted += 1
         self._notify(client, SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant))

@@ -8,6 +8,7 @@ LdmError
 │   └── RequestRejected  the core refused one input (malformed, too large, rate limit)
 ├── RequestTimeout     no reply arrived in time (also a TimeoutError)
 ├── CryptoError        a payload could not be decrypted or a key is malformed
+├── TrustError         a service's identity is neither pinned nor endorsed by an anchor
 └── PasswordFileError  a user name, password or password file line Mosquitto cannot use
 """
 
@@ -23,6 +24,7 @@ __all__ = [
     "RequestTimeout",
     "ServiceNotFound",
     "SessionError",
+    "TrustError",
 ]
 
 
@@ -65,6 +67,14 @@ class RequestTimeout(LdmError, TimeoutError):
 
 class CryptoError(LdmError):
     """A payload failed authentication or a key is malformed."""
+
+
+class TrustError(LdmError):
+    """The service's key is not signed by an identity the participant trusts.
+
+    Pin the service's identity (``service_keys``, the key `ldm keys show` prints for
+    its identity file) or a trust anchor that endorsed it (``anchors``).
+    """
 
 
 class PasswordFileError(LdmError, ValueError):

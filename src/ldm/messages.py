@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ldm.identity import canonical
 from ldm.topics import NAME_PATTERN, TOKEN_PATTERN
 
 __all__ = [
@@ -51,9 +52,24 @@ class ServiceSpec(_Wire):
 
 
 class ServiceDescription(ServiceSpec):
-    """A service spec plus the provider's X25519 public key (base64, 32 bytes raw)."""
+    """A service spec plus the provider's X25519 public key (base64, 32 bytes raw).
+
+    A provider with an identity signs it (`ldm.identity`): ``identity`` is its Ed25519
+    public key, ``issued`` when this session key was made (a participant never goes
+    back to an older one), ``signature`` covers every other field, and ``endorsement``
+    is a trust anchor's signature of the identity for this service name, if it has one.
+    """
 
     public_key: str = Field(pattern=_B64, min_length=44, max_length=44)
+    identity: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
+    issued: float = 0.0
+    signature: str | None = Field(default=None, pattern=_B64, max_length=128)
+    endorsement: str | None = Field(default=None, pattern=_B64, max_length=128)
+
+    def signed_text(self) -> bytes:
+        """What ``signature`` signs: every field but the signature and the endorsement."""
+        body = self.model_dump(mode="json", exclude={"signature", "endorsement"})
+        return canonical("ldm-service/1", body)
 
 
 class Announcement(_Wire):
@@ -62,6 +78,11 @@ class Announcement(_Wire):
     service: ServiceDescription
     t: float
     origin: str | None = Field(default=None, pattern=_NAME)
+    sig: str | None = Field(default=None, pattern=_B64, max_length=128)
+    """The service identity's signature of the description's signature and ``t``."""
+
+    def signed_text(self) -> bytes:
+        return f"ldm-announce/1|{self.service.signature}|{self.t!r}".encode()
 
 
 class ServiceList(_Wire):
@@ -69,6 +90,12 @@ class ServiceList(_Wire):
 
     t: float
     services: list[ServiceDescription]
+    core: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
+    """The publishing core's Ed25519 public key; ``sig`` is its signature."""
+    sig: str | None = Field(default=None, pattern=_B64, max_length=128)
+
+    def signed_text(self) -> bytes:
+        return canonical("ldm-list/1", self.model_dump(mode="json", exclude={"sig"}))
 
 
 class CoreStatus(_Wire):
@@ -98,6 +125,8 @@ class SessionGrant(_Wire):
     idle_timeout: float
     max_age: float
     data_qos: int
+    rekey_interval: float = 1.0
+    """The shortest time between two ephemeral keys the core accepts for a session."""
 
 
 Rejection = Literal["invalid", "too_large", "rate_limited", "clock"]
@@ -120,6 +149,16 @@ class SessionNotice(_Wire):
     grant: SessionGrant | None = None
     error: str | None = None
     reason: Rejection | None = None
+    to: str | None = None
+    """The client id it is meant for, and ``t`` when it was sent: both signed, so a
+    signed notice cannot be replayed to another participant or much later."""
+    t: float | None = None
+    sig: str | None = Field(default=None, pattern=_B64, max_length=128)
+    """The core's Ed25519 signature of every other field."""
+
+    def signed_text(self) -> bytes:
+        body = self.model_dump(mode="json", exclude={"sig"}, exclude_none=True)
+        return canonical("ldm-notice/1", body)
 
 
 class Envelope(_Wire):

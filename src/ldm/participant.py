@@ -36,7 +36,9 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    TrustError,
 )
+from ldm.identity import verify
 from ldm.messages import (
     Envelope,
     ServiceDescription,
@@ -46,6 +48,7 @@ from ldm.messages import (
     SessionRequest,
 )
 from ldm.transport import Connected, Event, Message, Transport
+from ldm.trust import Trust
 
 __all__ = ["Participant", "Session"]
 
@@ -102,6 +105,7 @@ class Session:
         self._lock = threading.Lock()
         self._reopen_c: str | None = None
         self._reopen_at = 0.0
+        self._rotated_at = time.time()
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
 
@@ -159,18 +163,35 @@ class Session:
 
     # --- participant's worker thread --------------------------------------------------
 
-    def _rotate(self) -> None:
+    def _rotate(self, now: float) -> bool:
+        """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
+
+        The core refuses a session's new key sooner than that, so a rotation more often,
+        asked by a replayed or forged notice, would only lock the session out.
+        """
+        if now - self._rotated_at < self.grant.rekey_interval:
+            return False
         self._keys = _Keys.new(self.grant.service)
+        self._rotated_at = now
         self.rotations += 1
+        return True
 
     def _regrant(self, grant: SessionGrant) -> None:
         """The core granted the session again: new key, re-send what is still waiting.
 
         Each re-sent input gets a new correlation id: the old one travelled under the
-        old pseudonym, and the same id under the new one would link the two.
+        old pseudonym, and the same id under the new one would link the two. The key
+        stays if it changed within the last ``rekey_interval`` and the service's key is
+        the same (the core would refuse a new one).
         """
+        changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
-        self._rotate()
+        if changed:
+            self._keys = _Keys.new(grant.service)
+            self._rotated_at = time.time()
+            self.rotations += 1
+        else:
+            self._rotate(time.time())
         with self._lock:
             waiting, self._pending = list(self._pending.values()), {}
             resend = [(_token(), p) for p in waiting]
@@ -179,20 +200,31 @@ class Session:
             pending.keys = self._keys
             self._send(c, pending)
 
-    def _reply(self, env: Envelope) -> None:
+    def _reply(self, env: Envelope) -> bool:
+        """Settle the request ``env`` answers; False (and nothing changes) if it is not
+        authentic, so a forged reply never uses up a request."""
         with self._lock:
-            pending = self._pending.pop(env.c, None)
+            pending = self._pending.get(env.c)
         if pending is None:
-            return
+            return True
         try:
             payload = json.loads(pending.keys.cipher.open(env.d, aad(env.c, env.t)))
-            if not isinstance(payload, dict):
-                raise CryptoError("the reply is not a JSON object")
-        except (CryptoError, ValueError, RecursionError) as exc:
-            error = CryptoError(f"reply from {self.service.name!r}: {exc}")
-            _settle(pending.future, error=error)
-            return
-        _settle(pending.future, payload)
+        except CryptoError:
+            return False
+        except (ValueError, RecursionError) as exc:
+            # Authentic but not JSON: the service itself answered this badly.
+            payload = CryptoError(f"reply from {self.service.name!r} is not JSON: {exc}")
+        if not isinstance(payload, dict | CryptoError):
+            payload = CryptoError(f"reply from {self.service.name!r} is not a JSON object")
+        with self._lock:
+            if self._pending.get(env.c) is not pending:
+                return True  # answered meanwhile (a duplicate at QoS 1)
+            del self._pending[env.c]
+        if isinstance(payload, CryptoError):
+            _settle(pending.future, error=payload)
+        else:
+            _settle(pending.future, payload)
+        return True
 
     def _fail(self, c: str | None, error: Exception) -> None:
         with self._lock:
@@ -231,7 +263,12 @@ class Participant(Worker[Event]):
             config.client_id or config.broker.username or f"ldm-p-{secrets.token_hex(6)}"
         )
         self._services: list[ServiceDescription] = []
+        self._list_t = 0.0  # time of the newest signed service list taken
         self._have_list = threading.Event()
+        self.trust = Trust(config.service_keys, config.anchors)
+        self._distrusted: dict[str, str] = {}  # service -> why its last grant was refused
+        self.ignored = 0
+        """Notices, lists and replies ignored as unauthentic (forged, replayed, unsigned)."""
         self._opening: dict[str, Future[SessionGrant]] = {}
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
@@ -298,6 +335,9 @@ class Participant(Worker[Event]):
         try:
             grant = future.result(timeout)
         except FutureTimeout:
+            problem = self._distrusted.get(service)
+            if problem is not None:
+                raise TrustError(f"{problem}; not opening a session with it") from None
             raise SessionError(
                 f"no answer to the session request for {service!r} within {timeout} s; "
                 "is the cluster's LDM core running?"
@@ -347,23 +387,65 @@ class Participant(Worker[Event]):
 
     def _message(self, msg: Message) -> None:
         if msg.topic == topics.SERVICES:
-            services = ServiceList.model_validate_json(msg.payload).services if msg.payload else []
-            self._services = services
-            self._have_list.set()
-            self._check_keys(services)
+            self._service_list(msg.payload)
             return
         levels = msg.topic.split("/")
         if len(levels) == 5 and levels[4] == "session":
-            self._notice(SessionNotice.model_validate_json(msg.payload))
+            notice = SessionNotice.model_validate_json(msg.payload)
+            if self._authentic(notice):
+                self._notice(notice)
+            else:
+                self.ignored += 1
         elif len(levels) == 6 and levels[4] == "data":
             session = self._sessions.get(levels[5])
             env = Envelope.model_validate_json(msg.payload)
-            if session is not None and time.time() - env.t <= self.config.max_age:
-                session._reply(env)
+            fresh = time.time() - env.t <= self.config.max_age
+            if session is not None and fresh and not session._reply(env):
+                self.ignored += 1
+
+    def _authentic(self, notice: SessionNotice) -> bool:
+        """With a pinned core key: signed by it, for this client, and recent."""
+        key = self.config.core_key
+        if key is None:
+            return True
+        return (
+            notice.to == self.client_id
+            and notice.t is not None
+            and abs(time.time() - notice.t) <= self.config.notice_window
+            and verify(key, notice.signed_text(), notice.sig)
+        )
+
+    def _service_list(self, payload: bytes) -> None:
+        """Take a service list: signed by the pinned core (if any), never older than the
+        last one, and only the services the participant trusts.
+
+        An empty payload is the core clearing its list (it stopped): no services, and
+        no session is touched.
+        """
+        if not payload:
+            self._services = []
+            self._have_list.set()
+            return
+        listing = ServiceList.model_validate_json(payload)
+        key = self.config.core_key
+        if key is not None:
+            if not verify(key, listing.signed_text(), listing.sig) or listing.t < self._list_t:
+                self.ignored += 1
+                return
+            self._list_t = listing.t
+        services = [s for s in listing.services if self.trust.trusts(s)]
+        self._services = services
+        self._have_list.set()
+        self._check_keys(services)
 
     def _notice(self, notice: SessionNotice) -> None:
         session = self._sessions.get(notice.service)
         if notice.kind == "grant" and notice.grant is not None:
+            problem = self.trust.problem(notice.grant.service)
+            if problem is not None:
+                self._distrusted[notice.service] = problem
+                self.ignored += 1
+                return
             with self._lock:
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
@@ -393,16 +475,23 @@ class Participant(Worker[Event]):
             elif session is not None:
                 session._fail(notice.c, rejected)
         elif notice.kind == "rotate" and session is not None:
-            session._rotate()
+            session._rotate(time.time())
         elif notice.kind == "nosession" and session is not None:
             self._reopen(session)
 
     def _check_keys(self, services: list[ServiceDescription]) -> None:
-        """A service that restarted with a new key needs its sessions opened again."""
-        keys = {s.name: s.public_key for s in services}
+        """A service that restarted with a new key needs its sessions opened again.
+
+        Only for a newer key (``issued``): a replayed older description changes nothing.
+        """
+        latest = {s.name: s for s in services}
         for session in list(self._sessions.values()):
-            key = keys.get(session.service.name)
-            if key is not None and key != session.service.public_key:
+            desc = latest.get(session.service.name)
+            if (
+                desc is not None
+                and desc.public_key != session.service.public_key
+                and desc.issued >= session.service.issued
+            ):
                 self._reopen(session)
 
     def tick(self, now: float) -> None:

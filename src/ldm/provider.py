@@ -29,6 +29,7 @@ from ldm._worker import Worker
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import CryptoError, SessionError
+from ldm.identity import SigningKey
 from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec
 from ldm.transport import Connected, Event, Message, Transport, Will
 
@@ -109,6 +110,7 @@ class Provider(Worker[Event]):
         handler: Handler,
         *,
         key: KeyPair | None = None,
+        identity: SigningKey | None = None,
     ) -> None:
         super().__init__(
             f"ldm-provider-{spec.name}",
@@ -117,7 +119,21 @@ class Provider(Worker[Event]):
         )
         self.config = config
         self.key = key or KeyPair()
-        self.description = ServiceDescription(**spec.model_dump(), public_key=self.key.public)
+        if identity is None:
+            path = config.identity_file
+            identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
+        self.identity = identity
+        """The service's Ed25519 identity: participants pin ``identity.public``."""
+        unsigned = ServiceDescription(
+            **spec.model_dump(),
+            public_key=self.key.public,
+            identity=identity.public,
+            issued=time.time(),
+            endorsement=config.endorsement,
+        )
+        self.description = unsigned.model_copy(
+            update={"signature": identity.sign(unsigned.signed_text())}
+        )
         self.name = spec.name
         self.stats = ProviderStats()
         self._handler = handler
@@ -145,11 +161,12 @@ class Provider(Worker[Event]):
         handler: Handler,
         *,
         key: KeyPair | None = None,
+        identity: SigningKey | None = None,
         **settings: Any,
     ) -> Provider:
         """Build a provider from a URL or settings plus any ProviderConfig field."""
         config = build(ProviderConfig, broker=BrokerSettings.of(broker), **settings)
-        return cls(config, spec, handler, key=key)
+        return cls(config, spec, handler, key=key, identity=identity)
 
     def start(self, timeout: float | None = 10.0) -> Provider:
         """Connect, announce and serve in background threads."""
@@ -204,6 +221,7 @@ class Provider(Worker[Event]):
     def _announce(self, now: float) -> None:
         self._next_announce = now + self.config.announce_interval
         ann = Announcement(service=self.description, t=now)
+        ann = ann.model_copy(update={"sig": self.identity.sign(ann.signed_text())})
         self.transport.publish(
             topics.announce(self.name), ann.model_dump_json().encode(), qos=1, retain=True
         )

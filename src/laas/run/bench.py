@@ -229,6 +229,7 @@ class _Shard:
     # (user, measurement as a dict), in time order; its time zero is EPOCH_MS
     sends: list[tuple[str, dict[str, Any]]]
     reply_timeout: float
+    trust: dict[str, Any]  # the participants' pinned keys (LocalDeployment.trust)
 
 
 def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, abort: Any) -> None:
@@ -253,7 +254,7 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
         with ExitStack() as stack:
             stack.callback(bare.stop)  # last: after the participants
             bare.start(10.0)
-            sessions = stack.enter_context(open_sessions(logins, 30.0))
+            sessions = stack.enter_context(open_sessions(logins, 30.0, **shard.trust))
             results.put(("ready", shard.index, len(sessions)))
             go.wait()
             if not abort.is_set():
@@ -364,14 +365,16 @@ def _deployment(
     )
 
 
-def _shards(trace: Trace, processes: int, url: str, config: BenchConfig) -> list[_Shard]:
+def _shards(
+    trace: Trace, processes: int, url: str, config: BenchConfig, trust: dict[str, Any]
+) -> list[_Shard]:
     users = sorted({f.user for f in trace.fixes})
     owner = {u: k % processes for k, u in enumerate(users)}
     sends: list[list[tuple[str, dict[str, Any]]]] = [[] for _ in range(processes)]
     for fix in trace.fixes:
         sends[owner[fix.user]].append((fix.user, fix.measurement.model_dump(exclude_none=True)))
     tag = secrets.token_hex(3)
-    return [_Shard(k, url, tag, s, config.reply_timeout) for k, s in enumerate(sends) if s]
+    return [_Shard(k, url, tag, s, config.reply_timeout, trust) for k, s in enumerate(sends) if s]
 
 
 def _load(
@@ -384,7 +387,7 @@ def _load(
     results = ctx.Queue()
     go, abort, echo_ready, echo_stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     start_at = ctx.Value("d", 0.0)
-    shards = _shards(trace, processes, deployment.user_url, config)
+    shards = _shards(trace, processes, deployment.user_url, config, deployment.trust)
     echo = ctx.Process(
         target=_echo_process,
         args=(deployment.user_url, shards[0].tag, echo_ready, echo_stop),
@@ -478,7 +481,7 @@ def _privacy(
     hdmap = HdMap.load(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), seed=0)
     with _deployment(kind, hdmap, period / speedup) as deployment:
-        live = run_participants(deployment.user_url, trace, speedup=speedup)
+        live = run_participants(deployment.user_url, trace, speedup=speedup, **deployment.trust)
         rotations = deployment.cores["user"].stats.rotations
     result = score(hdmap, trace, live.answers) if live.answered else None
     return PrivacyRun(

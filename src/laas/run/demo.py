@@ -53,7 +53,8 @@ def run_demo(
     with LocalDeployment(hdmap, config, brokers=brokers) as deployment:
         print(
             f"started 3 {deployment.kind} brokers (user {deployment.user_url}, inter-cluster, "
-            "service), 2 LDM cores and the laas worker"
+            "service), 2 LDM cores and the laas worker; participants pin the worker's "
+            "identity and the user core's key"
         )
         print(f"running the road users as LDM participants at {speedup:g}x real time:")
         live = run_participants(
@@ -61,6 +62,7 @@ def run_demo(
             trace,
             speedup=speedup,
             progress=progress_printer("  sent", "fixes"),
+            **deployment.trust,
         )
     for error in live.errors[:5]:
         print(f"  {error}", file=sys.stderr)

@@ -6,6 +6,10 @@
 Three brokers (Mosquitto processes when `mosquitto` is installed, else the embedded
 broker), two LDM cores and the worker, each with its own MQTT connections. The cores
 run in this process; the worker too, or in a process of its own (`worker_process`).
+
+The worker gets a fresh identity key; both cores and every participant started with
+`trust` pin it, and participants pin the user core's key, so no broker and no core
+can read a fix or answer in the worker's name (docs/security.md).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from laas.map.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
 from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
+from ldm.identity import SigningKey
 
 __all__ = ["BrokerChoice", "LocalDeployment"]
 
@@ -64,12 +69,22 @@ class LocalDeployment:
         self.cores: dict[str, Core] = {}
         self.provider: Provider | None = None
         self.service: LaasService | None = None  # the worker's, when it runs in this process
+        self.identity = SigningKey.generate()
+        """The laas worker's identity, pinned by the cores and by `trust`'s participants."""
         self._worker: _WorkerProcess | None = None
         self._worker_answered = -1
 
     @property
     def user_url(self) -> str:
         return self.brokers["user"].url
+
+    @property
+    def trust(self) -> dict[str, Any]:
+        """`ldm.ParticipantConfig` settings that pin the worker's and the user core's keys."""
+        return {
+            "service_keys": {"laas": self.identity.public},
+            "core_key": self.cores["user"].public_key,
+        }
 
     @property
     def worker_answered(self) -> int:
@@ -91,12 +106,14 @@ class LocalDeployment:
                     backbone,
                     rotation_period=self.rotation_period,
                     data_qos=self.data_qos,
+                    service_keys={"laas": self.identity.public},
                 ).start()
+            url = self.brokers["service"].url
             if self.worker_process:
-                self._worker = _WorkerProcess(self.brokers["service"].url, self.hdmap, self.config)
+                self._worker = _WorkerProcess(url, self.hdmap, self.config, self.identity)
             else:
                 self.provider, self.service = start_worker(
-                    self.brokers["service"].url, self.hdmap, self.config
+                    url, self.hdmap, self.config, identity=self.identity
                 )
         except BaseException:
             self.stop()
@@ -132,13 +149,16 @@ class LocalDeployment:
 class _WorkerProcess:
     """`laas worker` in a spawned child process, serving until `stop`."""
 
-    def __init__(self, url: str, hdmap: HdMap, config: EngineConfig | None) -> None:
+    def __init__(
+        self, url: str, hdmap: HdMap, config: EngineConfig | None, identity: SigningKey
+    ) -> None:
         ctx = mp.get_context("spawn")
         self._ready, self._stop = ctx.Event(), ctx.Event()
         self._answered = ctx.Value("q", -1)
+        pem = identity.to_pem()  # through the process pipe, never a file or a log
         self._process = ctx.Process(
             target=_serve,
-            args=(url, hdmap.source, config, self._ready, self._stop, self._answered),
+            args=(url, hdmap.source, config, pem, self._ready, self._stop, self._answered),
             name="laas-worker",
         )
         self._process.start()
@@ -164,10 +184,17 @@ class _WorkerProcess:
 
 
 def _serve(
-    url: str, map_path: str, config: EngineConfig | None, ready: Any, stop: Any, answered: Any
+    url: str,
+    map_path: str,
+    config: EngineConfig | None,
+    pem: bytes,
+    ready: Any,
+    stop: Any,
+    answered: Any,
 ) -> None:
     """The worker process: serve until `stop` is set, then leave the answer count."""
-    provider, service = start_worker(url, HdMap.load(map_path), config)
+    identity = SigningKey.from_pem(pem)
+    provider, service = start_worker(url, HdMap.load(map_path), config, identity=identity)
     ready.set()
     stop.wait()
     provider.stop()

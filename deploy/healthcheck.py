@@ -8,7 +8,8 @@
 `core NAME`: the core's retained status on the backbone (`ldm/bb/core/NAME`) says
 online; its last will turns it offline when the process dies or loses the broker.
 `service NAME`: the service's retained announcement on its cluster broker
-(`ldm/svc/NAME/announce`) is not empty; the provider's last will empties it.
+(`ldm/svc/NAME/announce`) is an announcement; the provider's last will replaces it
+with its signed withdrawal.
 Both read one retained message through the LDM's own transport, so the check sees
 what the other cores and participants see. On a broker with accounts the check logs in
 with the checked container's own account (its password from the environment variable
@@ -19,6 +20,7 @@ use_username_as_clientid, so the check never displaces the container's own conne
 from __future__ import annotations
 
 import argparse
+import json
 import queue
 import secrets
 import sys
@@ -82,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     if a.kind == "core" and not CoreStatus.model_validate_json(payload).online:
         print(f"unhealthy: core {a.name} is marked offline")
+        return 1
+    if a.kind == "service" and b'"withdrawn"' in payload and "withdrawn" in json.loads(payload):
+        print(f"unhealthy: service {a.name} withdrew its announcement")
         return 1
     print(f"healthy: {topic}")
     return 0

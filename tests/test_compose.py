@@ -4,11 +4,13 @@ There is no container engine on the test machines, so this test reads the compos
 and starts each service with the same command, arguments and environment as compose
 would: the brokers as Mosquitto processes with the mounted config, ACL and password file
 (only the listener port changes, a free port per broker, and the mounted paths become
-the host files), the Python services through the same console scripts. The accounts are
-made as the deployment makes them: deploy/security/compose-accounts.sh writes an env
-file with random passwords and the password file, and the env file's values are what
-compose would substitute. Service host names (`broker-user`, ...) become
-127.0.0.1:<that broker's port>, and image paths under /app/ become the repository's.
+the host files), the Python services through the same console scripts. The accounts and
+keys are made as the deployment makes them: deploy/security/compose-accounts.sh writes
+an env file with random passwords and the public identity keys, the password file and
+the private keys, and the env file's values are what compose would substitute. Service
+host names (`broker-user`, ...) become 127.0.0.1:<that broker's port>, paths a Python
+service mounts (its identity key) become the host files, and image paths under /app/
+become the repository's.
 Dependencies start in compose's order and wait for the compose health checks, which run
 here too. Then the simulator (profile `sim`) drives the Hamburg road users through the
 deployment.
@@ -37,6 +39,10 @@ from ldm.pytest_plugin import need_mosquitto
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 ACCOUNTS = ROOT / "deploy" / "security" / "compose-accounts.sh"
+PASSWD = ROOT / "deploy" / "security" / "passwd"
+KEYS = ROOT / "deploy" / "security" / "keys"
+# identity key file -> the env variable with its public key (None: no one pins it)
+KEY_FILES = {"laas-worker": "LAAS_SERVICE_KEY", "core-user": "LAAS_CORE_KEY", "core-service": None}
 MOSQUITTO_IMAGE = "eclipse-mosquitto:2"
 CONFIG_IN_IMAGE = "/mosquitto/config/mosquitto.conf"
 _VARIABLE = re.compile(r"\$\$|\$\{(\w+)(?:(:?[-?])([^}]*))?\}|\$(\w+)")
@@ -87,12 +93,22 @@ def is_broker(service: Service) -> bool:
 
 
 def mounts(service: Service) -> dict[str, Path]:
-    """Path in the container -> the host file mounted there."""
+    """Path in the container -> the host file mounted there (short or long syntax)."""
     found = {}
     for volume in service.get("volumes", []):
-        source, target, *_ = str(volume).split(":")
+        if isinstance(volume, dict):
+            assert volume["type"] == "bind", volume
+            source, target = volume["source"], volume["target"]
+        else:
+            source, target, *_ = str(volume).split(":")
         found[target] = (ROOT / source).resolve()
     return found
+
+
+def read_only(volume: str | dict[str, Any]) -> bool:
+    if isinstance(volume, dict):
+        return volume.get("read_only") is True
+    return volume.endswith(":ro")
 
 
 def mounted_config(service: Service) -> Path:
@@ -109,13 +125,21 @@ def settings(config: Path) -> list[tuple[str, str]]:
 
 
 def make_accounts(directory: Path) -> dict[str, str]:
-    """Run compose-accounts.sh as documented, into `directory`; the env file's values."""
+    """Run compose-accounts.sh as documented, into `directory`; the env file's values.
+
+    The password file is `directory`/passwd, the identity keys are in `directory`/keys.
+    """
     env_file, passwd = directory / ".env", directory / "passwd"
     subprocess.run(
         ["bash", str(ACCOUNTS), str(env_file)],
         check=True,
         capture_output=True,
-        env={"PATH": "/usr/bin:/bin:/usr/sbin", "PASSWD_FILE": str(passwd), "MODE": "0644"},
+        env={
+            "PATH": "/usr/bin:/bin:/usr/sbin",
+            "PASSWD_FILE": str(passwd),
+            "MODE": "0644",
+            "KEYS_DIR": str(directory / "keys"),
+        },
     )
     values = {}
     for line in env_file.read_text().splitlines():
@@ -153,7 +177,7 @@ def start_order(services: Mapping[str, Service]) -> list[str]:
 
 
 def test_every_service_restarts_and_brokers_are_checked() -> None:
-    services = load_compose(SECRETS)
+    services = load_compose(SETTINGS)
     brokers = [n for n, s in services.items() if is_broker(s)]
     assert sorted(brokers) == ["broker-backbone", "broker-service", "broker-user"]
     for name, service in services.items():
@@ -181,10 +205,12 @@ SECRETS = {
     "LAAS_HEALTH_PASSWORD": "h",
     "LAAS_SIM_PASSWORD": "p",
 }
+PUBLIC_KEYS = {"LAAS_SERVICE_KEY": "service-key=", "LAAS_CORE_KEY": "core-key="}
+SETTINGS = {**SECRETS, **PUBLIC_KEYS}  # what compose-accounts.sh puts in .env
 
 
 def test_every_mosquitto_config_in_use_is_tuned_and_locked() -> None:
-    services = load_compose(SECRETS)
+    services = load_compose(SETTINGS)
     brokers = {n: s for n, s in services.items() if is_broker(s)}
     acls = {
         "broker-user": "deploy/security/acl-user-cluster",
@@ -209,7 +235,7 @@ def test_every_mosquitto_config_in_use_is_tuned_and_locked() -> None:
         ):
             assert found.get(option) == in_image, (config, option)
             assert files.get(in_image) == ROOT / host, (name, in_image)
-            assert all(str(v).endswith(":ro") for v in service["volumes"]), name
+            assert all(read_only(v) for v in service["volumes"]), name
     assert mounted_config(brokers["broker-user"]) == ROOT / "mosquitto.conf"
     assert len({mounted_config(s) for s in brokers.values()}) == 3, "one config per broker"
 
@@ -226,7 +252,7 @@ def listener_blocks(lines: list[tuple[str, str]]) -> list[list[tuple[str, str]]]
 
 
 def test_every_user_cluster_listener_uses_the_user_name_as_client_id() -> None:
-    config = mounted_config(load_compose(SECRETS)["broker-user"])
+    config = mounted_config(load_compose(SETTINGS)["broker-user"])
     blocks = listener_blocks(settings(config))
     assert blocks, "no listener"
     for block in blocks:
@@ -269,7 +295,7 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
     assert (None, "pattern write ldm/p/%u/up/#") in user
     assert not (ROOT / "deploy" / "mosquitto" / "acl.example").exists()
     # the accounts the compose services log in with exist in their brokers' ACLs
-    services = load_compose(SECRETS)
+    services = load_compose(SETTINGS)
     for name in ("user", "service"):
         command = services[f"core-{name}"]["command"]
         account = f"ldm-core-{name}"
@@ -298,13 +324,59 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
         assert leaked <= ({"h"} if is_broker(service) else set()), name
 
 
-def test_compose_refuses_to_start_without_passwords() -> None:
+def test_compose_refuses_to_start_without_passwords_or_keys() -> None:
     with pytest.raises(Unset, match=re.escape("compose-accounts.sh")):
         load_compose({})
+    for name in SETTINGS:
+        for missing in ({k: v for k, v in SETTINGS.items() if k != name}, {**SETTINGS, name: ""}):
+            with pytest.raises(Unset, match=re.escape(f"{name}: unset; run deploy/security/")):
+                load_compose(missing)
+
+
+def image_uid() -> int:
+    """The uid the Python image runs as (the Dockerfile's `useradd --uid`)."""
+    found = re.search(r"useradd [^\n]*--uid (\d+)", (ROOT / "Dockerfile").read_text())
+    assert found, "Dockerfile: no useradd --uid"
+    return int(found[1])
+
+
+def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
+    services = load_compose(SETTINGS)
+    keys = {}
+    for name, service in services.items():
+        if is_broker(service):
+            continue
+        # the key, mounted read-only where the program is told to find it; the host file
+        # must exist (long syntax, create_host_path false: no empty directory instead)
+        files = {t: h for t, h in mounts(service).items() if h.parent == KEYS}
+        assert all(read_only(v) for v in service.get("volumes", [])), name
+        for volume in service.get("volumes", []):
+            assert isinstance(volume, dict) and volume["bind"]["create_host_path"] is False
+        command, env = service["command"], environment(service)
+        if name == "simulator":
+            assert not files, "the simulator is a participant: public keys only"
+            assert env["LAAS_SERVICE_KEY"] == PUBLIC_KEYS["LAAS_SERVICE_KEY"]
+            assert env["LAAS_CORE_KEY"] == PUBLIC_KEYS["LAAS_CORE_KEY"]
+            continue
+        assert len(files) == 1, (name, files)
+        [(target, host)] = files.items()
+        assert command[command.index("--identity") + 1] == target, name
+        keys[name] = host.name
+        if command[:2] == ["ldm", "core"]:
+            pins = [command[i + 1] for i, w in enumerate(command) if w == "--trust-service"]
+            assert pins == [f"laas={PUBLIC_KEYS['LAAS_SERVICE_KEY']}"], name
+    assert keys == {
+        "core-user": "core-user.key",
+        "core-service": "core-service.key",
+        "worker": "laas-worker.key",
+    }
+    assert sorted(keys.values()) == sorted(f"{k}.key" for k in KEY_FILES)
+    # the private keys are never committed
+    assert "/deploy/security/keys/" in (ROOT / ".gitignore").read_text().split()
 
 
 def test_cores_and_worker_match_the_topology() -> None:
-    services = load_compose(SECRETS)
+    services = load_compose(SETTINGS)
     for name in ("user", "service"):
         command = services[f"core-{name}"]["command"]
         assert command[:4] == ["ldm", "core", "--name", name]
@@ -319,7 +391,7 @@ def test_cores_and_worker_match_the_topology() -> None:
     assert sim[sim.index("--account-prefix") + 1] == "sim-"
     assert sim[sim.index("--cluster") + 1] == "mqtt://broker-user:1883"
     # configuration by environment
-    changed = load_compose({**SECRETS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
+    changed = load_compose({**SETTINGS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
     command = changed["core-user"]["command"]
     assert command[command.index("--rotation-period") + 1] == "30"
     assert environment(changed["worker"])["LAAS_LOG_LEVEL"] == "debug"
@@ -352,6 +424,54 @@ def test_interpolation_follows_compose() -> None:
     for unset in ("${E:?no}", "${B?no}"):
         with pytest.raises(Unset):
             interpolate(unset, env)
+
+
+def settings_lines(text: str) -> list[str]:
+    """Each line of an env file, values dropped: its comments and variables, in order."""
+    return [line.split("=")[0] for line in text.splitlines()]
+
+
+def show_key(path: Path) -> str:
+    """`ldm keys show`: the public key of a private key file."""
+    return subprocess.run(
+        [sys.executable, "-m", "ldm", "keys", "show", str(path)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+
+
+def test_compose_accounts_script_makes_the_keys_once(tmp_path: Path) -> None:
+    first = make_accounts(tmp_path)
+    keys = tmp_path / "keys"
+    assert sorted(p.name for p in keys.iterdir()) == sorted(f"{k}.key" for k in KEY_FILES)
+    pem = {name: (keys / f"{name}.key").read_bytes() for name in KEY_FILES}
+    publics = {name: show_key(keys / f"{name}.key") for name in KEY_FILES}
+    assert len(set(publics.values())) == 3, "one identity per service"
+    for name, var in KEY_FILES.items():
+        assert pem[name].startswith(b"-----BEGIN PRIVATE KEY-----"), name
+        if var:
+            assert first[var] == publics[name], name
+        # the image's user may read its key, no other user of the host can
+        info, shut = (keys / f"{name}.key").stat(), keys.stat().st_mode & 0o077 == 0
+        if os.geteuid() == 0:
+            assert (info.st_uid, info.st_mode & 0o777) == (image_uid(), 0o400), name
+        else:
+            assert info.st_mode & 0o777 == 0o644 and shut, name
+    env_text = (tmp_path / ".env").read_text()
+    assert not any(p.decode() in env_text for p in pem.values())
+    # each value on its own line of env.example, under that line's comment
+    example = (ROOT / "deploy" / "env.example").read_text()
+    assert settings_lines(env_text) == settings_lines(example)
+    # again: no key is overwritten and .env does not change
+    assert make_accounts(tmp_path) == first
+    assert {name: (keys / f"{name}.key").read_bytes() for name in KEY_FILES} == pem
+    # a public key lost from .env (or stale after a key was replaced) follows the file;
+    # its line stays where env.example puts it, under its comment
+    (tmp_path / ".env").write_text(env_text.replace(first["LAAS_CORE_KEY"], "stale"))
+    assert make_accounts(tmp_path) == first
+    assert (tmp_path / ".env").read_text() == env_text
+    assert {name: (keys / f"{name}.key").read_bytes() for name in KEY_FILES} == pem
 
 
 def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> None:
@@ -394,18 +514,31 @@ class LocalCompose:
         self.services = services
         self.workdir = workdir
         self.passwd = workdir / "passwd"  # compose mounts ./deploy/security/passwd
+        self.keys = workdir / "keys"  # ... and the keys in ./deploy/security/keys/
         self.secrets = secrets
         self.ports = {name: free_port() for name, s in services.items() if is_broker(s)}
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
-    def local(self, value: str) -> str:
-        """A value as seen from this machine: broker host names and image paths mapped."""
+    def host_file(self, path: Path) -> Path:
+        """A mounted host file; the generated ones (passwd, keys) are this run's."""
+        if path == PASSWD:
+            return self.passwd
+        if path.parent == KEYS:
+            return self.keys / path.name
+        return path
+
+    def local(self, value: str, service: Service | None = None) -> str:
+        """A value as seen from this machine: broker host names, mounted files (of a
+        Python service: the processes see no container paths) and image paths mapped."""
+        if service is not None and not is_broker(service):
+            for target, host in mounts(service).items():
+                value = value.replace(target, str(self.host_file(host)))
         for name, port in self.ports.items():
             value = value.replace(f"mqtt://{name}:1883", f"mqtt://127.0.0.1:{port}")
         return value.replace("/app/", f"{ROOT}/")
 
-    def argv(self, command: list[str]) -> list[str]:
-        program, *args = (self.local(str(c)) for c in command)
+    def argv(self, command: list[str], service: Service | None = None) -> list[str]:
+        program, *args = (self.local(str(c), service) for c in command)
         scripts = Path(sys.executable).parent
         if program in ("ldm", "laas"):
             script = scripts / program
@@ -420,7 +553,7 @@ class LocalCompose:
 
     def env(self, service: Service) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if not k.startswith(("LAAS_", "LDM_"))}
-        env.update({k: self.local(v) for k, v in environment(service).items()})
+        env.update({k: self.local(v, service) for k, v in environment(service).items()})
         env["PYTHONUNBUFFERED"] = "1"
         return env
 
@@ -431,10 +564,9 @@ class LocalCompose:
             port = self.ports[name]
             local, n = re.subn(r"(?m)^listener 1883\s*$", f"listener {port} 127.0.0.1", config)
             assert n == 1, f"{name}: expected one `listener 1883` line"
-            for in_image, host in mounts(service).items():
-                if host == ROOT / "deploy" / "security" / "passwd":
-                    host = self.passwd  # generated for this run, as the deployment does
-                elif host.is_file():
+            for in_image, mounted in mounts(service).items():
+                host = self.host_file(mounted)  # passwd: made for this run, as deployed
+                if host == mounted and host.is_file():
                     # The same file, copied where mosquitto (which drops root to user
                     # "mosquitto") can read it whatever the checkout's permissions.
                     copy = self.workdir / f"{name}-{host.name}"
@@ -450,7 +582,9 @@ class LocalCompose:
             argv = [binary, "-c", str(path)]
             env = dict(os.environ)
         else:
-            argv = self.argv(service["command"])
+            for host in mounts(service).values():
+                assert self.host_file(host).is_file(), f"{name}: nothing to mount at {host}"
+            argv = self.argv(service["command"], service)
             env = self.env(service)
         log = open(self.workdir / f"{name}.log", "wb")  # noqa: SIM115
         self.processes[name] = subprocess.Popen(
@@ -461,7 +595,7 @@ class LocalCompose:
     def healthcheck(self, name: str) -> subprocess.CompletedProcess[bytes]:
         test = self.services[name]["healthcheck"]["test"]
         assert test[0] == "CMD", f"{name}: health check in exec form"
-        argv = self.argv(test[1:])
+        argv = self.argv(test[1:], self.services[name])
         if is_broker(self.services[name]):
             if not Path(argv[0]).name.startswith("mosquitto_"):
                 raise AssertionError(f"{name}: unknown broker check {argv}")
@@ -526,6 +660,7 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     services = local_compose.services
     running = [n for n in start_order(services) if not services[n].get("profiles")]
     assert running[-1] == "worker" and all(is_broker(services[n]) for n in running[:3])
+    keys = {p.name: p.read_bytes() for p in local_compose.keys.iterdir()}
     for name in running:
         local_compose.start(name)
         local_compose.wait_healthy(name)
@@ -543,9 +678,14 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     sim = services["simulator"]
     for dep in sim["depends_on"]:
         assert local_compose.healthcheck(dep).returncode == 0, dep
+    # the simulator pins the worker's and the user core's keys: it takes no other service
+    # and acts on no notice another key signed, so its answers prove the whole chain
+    sim_env = local_compose.env(sim)
+    for var in ("LAAS_SERVICE_KEY", "LAAS_CORE_KEY"):
+        assert sim_env[var] == local_compose.secrets[var] != "", var
     result = subprocess.run(
-        local_compose.argv(sim["command"]),
-        env=local_compose.env(sim),
+        local_compose.argv(sim["command"], sim),
+        env=sim_env,
         capture_output=True,
         text=True,
         timeout=60,
@@ -558,6 +698,18 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     assert total == 303 and answered == total, result.stderr
     assert accuracy > 0.9, result.stderr
     assert len(result.stdout.splitlines()) == total
+    # each service signed with the key compose-accounts.sh made for it (none made its
+    # own), and the cores dropped no announcement of laas
+    public = {name: show_key(local_compose.keys / f"{name}.key") for name in KEY_FILES}
+    assert public["laas-worker"] == local_compose.secrets["LAAS_SERVICE_KEY"]
+    assert public["core-user"] == local_compose.secrets["LAAS_CORE_KEY"]
+    worker = local_compose.log("worker")
+    assert f"identity (participants pin it): {public['laas-worker']}" in worker, worker
+    for name in ("user", "service"):
+        log = local_compose.log(f"core-{name}")
+        assert f"its key (participants pin it): {public[f'core-{name}']}" in log, log
+        assert "dropped" not in log, log
+    assert {p.name: p.read_bytes() for p in local_compose.keys.iterdir()} == keys
 
     # the worker's health check is not vacuous: stopping it withdraws the service
     assert local_compose.stop("worker") == 0

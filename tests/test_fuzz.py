@@ -142,9 +142,9 @@ BOB_KEY = KeyPair()  # the fuzzed participant's current ephemeral key
 @pytest.fixture(scope="module")
 def core(provider_key: KeyPair) -> Iterator[Core]:
     """A single-cluster core that knows `echo` and holds alice's and bob's sessions."""
-    c = Core.create("fuzz", UNREACHABLE, rate=1e9, burst=1e9, max_payload=4096)
+    c = Core.create("fuzz", UNREACHABLE, rate=1e9, burst=1e9, max_payload=4096, service_ttl=3600)
     description = ServiceDescription(**SPEC.model_dump(), public_key=provider_key.public)
-    announcement = Announcement(service=description, t=time.time() + 3600)
+    announcement = Announcement(service=description, t=time.time())  # lives service_ttl
     c.handle(cluster("ldm/svc/echo/announce", announcement.model_dump_json().encode()))
     for who, key in (("alice", KeyPair()), ("bob", BOB_KEY)):
         request = SessionRequest(c="a1", service="echo", t=time.time())

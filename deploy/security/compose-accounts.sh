@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The accounts of docker-compose.yml: run once before `docker compose up`.
+# The accounts and identity keys of docker-compose.yml: run once before `docker compose up`.
 #
 #   deploy/security/compose-accounts.sh [ENV_FILE]        # default: .env beside the compose file
 #
@@ -10,6 +10,10 @@
 #    deploy/security/make-passwd.sh (`ldm passwd`, passwords on its stdin): one salted
 #    hash per account. Other accounts already in it (your participants, added with
 #    make-passwd.sh) are kept.
+# 3. deploy/security/keys/ (or $KEYS_DIR) gets each service's Ed25519 identity key
+#    (`ldm keys new`) unless the file exists: an existing key is never overwritten. The
+#    PUBLIC keys go into ENV_FILE (as `ldm keys show` prints them from the key files),
+#    where compose finds them for the cores' --trust-service and the simulator's pins.
 #
 # Accounts (variable -> account names):
 #   LDM_CORE_USER_PASSWORD     ldm-core-user      user-cluster core, on broker-user and the backbone
@@ -18,10 +22,21 @@
 #   LAAS_HEALTH_PASSWORD       laas-health        the brokers' health checks ($SYS/broker/version)
 #   LAAS_SIM_PASSWORD          sim-car sim-cyclist-1 sim-cyclist-2   the simulator's road users
 #
-# The brokers run as uid 1883 in their containers and read the file through a read-only
-# mount: as root the script gives it to 1883 with mode 0640; otherwise it makes it 0644
-# (hashes only, of random passwords) unless MODE is set. Needs the ldm command (see
-# make-passwd.sh), not Mosquitto.
+# Identity keys (key file in deploy/security/keys/ -> public key variable):
+#   laas-worker.key    LAAS_SERVICE_KEY   the worker signs the laas service with it; both
+#                                         cores and the simulator take only that signature
+#   core-user.key      LAAS_CORE_KEY      the user-cluster core signs its notices and
+#                                         service lists; participants (the simulator) pin it
+#   core-service.key   (none)             the service-cluster core's signatures
+#
+# The brokers run as uid 1883 in their containers and read the password file through a
+# read-only mount: as root the script gives it to 1883 with mode 0640; otherwise it makes
+# it 0644 (hashes only, of random passwords) unless MODE is set. The Python services run
+# as the image's user, uid 10001 (Dockerfile; KEY_UID), and each reads its own key
+# through a read-only mount: as root the script gives each new key to that uid with mode
+# 0400; otherwise a new key is 0644 (unless KEY_MODE is set) in a keys directory of mode
+# 0700, which keeps other users of the host out. Needs the ldm command (on PATH, else
+# the repository's .venv/bin/ldm, else python3 -m ldm), not Mosquitto.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/../.." && pwd)
@@ -34,11 +49,18 @@ value() { # the last VAR=value of the env file, empty if none
   sed -n "s/^$1=//p" "$env_file" | tail -n 1
 }
 
-set_value() { # VAR=value, replacing the variable's lines or appending one
+set_value() { # VAR=value in place of the variable's first line (later ones dropped), or appended
   local tmp
   tmp=$(mktemp "$env_file.XXXXXX")
-  grep -v "^$1=" "$env_file" >"$tmp" || true
-  printf '%s=%s\n' "$1" "$2" >>"$tmp"
+  NAME=$1 VALUE=$2 awk '
+    index($0, ENVIRON["NAME"] "=") == 1 {
+      if (!done) print ENVIRON["NAME"] "=" ENVIRON["VALUE"]
+      done = 1
+      next
+    }
+    { print }
+    END { if (!done) print ENVIRON["NAME"] "=" ENVIRON["VALUE"] }
+  ' "$env_file" >"$tmp"
   chmod 0600 "$tmp"
   mv "$tmp" "$env_file"
 }
@@ -69,4 +91,39 @@ if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
 else
   printf '%s\n' "${entries[@]}" | MODE=${MODE:-0644} "$here/make-passwd.sh" "$passwd" -
 fi
-echo "accounts of docker-compose.yml in $passwd; now: docker compose up -d"
+echo "accounts of docker-compose.yml in $passwd"
+
+# The identity keys: made once, never overwritten; ENV_FILE holds their public keys.
+if command -v ldm >/dev/null; then
+  ldm=(ldm)
+elif [ -x "$root/.venv/bin/ldm" ]; then
+  ldm=("$root/.venv/bin/ldm")
+elif python3 -c 'import ldm.identity' 2>/dev/null; then
+  ldm=(python3 -m ldm)
+else
+  echo "$0: the ldm command is not installed; run 'pip install -e .' in $root" >&2
+  exit 1
+fi
+keys=${KEYS_DIR:-$here/keys}
+[ -d "$keys" ] || mkdir -m 0700 "$keys" # its parent exists: deploy/security
+for pair in laas-worker=LAAS_SERVICE_KEY core-user=LAAS_CORE_KEY core-service=; do
+  file=$keys/${pair%%=*}.key
+  var=${pair#*=}
+  if [ -e "$file" ] || [ -L "$file" ]; then
+    public=$("${ldm[@]}" keys show "$file") # fails on anything but a readable key
+  else
+    public=$("${ldm[@]}" keys new "$file") # mode 0600, the invoking user's
+    if [ "$(id -u)" = 0 ] && [ -z "${KEY_MODE:-}" ]; then
+      chown "${KEY_UID:-10001}" "$file"
+      chmod 0400 "$file"
+    else
+      chmod "${KEY_MODE:-0644}" "$file"
+    fi
+    echo "$file: new identity key"
+  fi
+  if [ -n "$var" ] && [ "$(value "$var")" != "$public" ]; then
+    set_value "$var" "$public"
+    echo "$var: public key of $file in $env_file"
+  fi
+done
+echo "identity keys of docker-compose.yml in $keys; now: docker compose up -d"

@@ -11,7 +11,7 @@
 # git and readable by the broker only (the script sets mode 0640 unless MODE is set).
 #
 # The ldm command is the one on PATH, else the repository's .venv/bin/ldm (after
-# `pip install -e .`), else `python3 -m ldm.cli` where python3 can import ldm.
+# `pip install -e .`), else `python3 -m ldm` where python3 can import ldm.
 set -euo pipefail
 if [ "$#" -lt 2 ]; then
   echo "usage: $0 FILE USER[=PASSWORD] ..." >&2
@@ -23,7 +23,7 @@ if command -v ldm >/dev/null; then
 elif [ -x "$root/.venv/bin/ldm" ]; then
   ldm=("$root/.venv/bin/ldm")
 elif python3 -c 'import ldm.passwd' 2>/dev/null; then
-  ldm=(python3 -m ldm.cli)
+  ldm=(python3 -m ldm)
 else
   echo "$0: the ldm command is not installed; run 'pip install -e .' in $root" \
     "(or bash scripts/test, which sets up .venv)" >&2

@@ -209,10 +209,18 @@ def _cmd_worker(a: argparse.Namespace) -> int:
         format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
     )
     hdmap = HdMap.load(a.map)
-    provider, service = start_worker(_broker(a), hdmap, _engine_config(a), data_qos=a.data_qos)
+    provider, service = start_worker(
+        _broker(a),
+        hdmap,
+        _engine_config(a),
+        data_qos=a.data_qos,
+        identity_file=a.identity,
+        endorsement=a.endorsement,
+    )
     print(
         f"laas worker: serving {len(hdmap.segments)} road elements of {a.map} "
-        f"on {a.cluster} ({a.mode} mode)",
+        f"on {a.cluster} ({a.mode} mode); identity (participants pin it): "
+        f"{provider.identity.public}",
         flush=True,
     )
     try:
@@ -254,6 +262,9 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         account_prefix=a.account_prefix,
         speedup=a.speedup,
         progress=progress_printer("  sent", "fixes"),
+        service_keys={"laas": a.service_key} if a.service_key else {},
+        anchors=a.trust_anchor,
+        core_key=a.core_key,
     )
     out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
     try:
@@ -376,6 +387,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("LAAS_LOG_LEVEL", "warning"),
         choices=["debug", "info", "warning", "error"],
     )
+    p.add_argument(
+        "--identity",
+        type=Path,
+        default=os.environ.get("LAAS_IDENTITY"),
+        help="the worker's Ed25519 identity key file, made if missing (env LAAS_IDENTITY); "
+        "participants pin its public key. Default: a new identity each start",
+    )
+    p.add_argument(
+        "--endorsement",
+        default=os.environ.get("LAAS_ENDORSEMENT"),
+        help="a trust anchor's endorsement of the identity (`ldm keys endorse`)",
+    )
     _engine_args(p)
     p.set_defaults(func=_cmd_worker)
 
@@ -392,6 +415,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--list-accounts", action="store_true", help="print the accounts the users need, exit"
+    )
+    p.add_argument(
+        "--service-key",
+        default=os.environ.get("LAAS_SERVICE_KEY"),
+        help="pin the laas worker's identity (its public key; env LAAS_SERVICE_KEY)",
+    )
+    p.add_argument(
+        "--trust-anchor",
+        action="append",
+        default=[],
+        metavar="KEY",
+        help="trust a laas identity this anchor endorsed (repeatable)",
+    )
+    p.add_argument(
+        "--core-key",
+        default=os.environ.get("LAAS_CORE_KEY"),
+        help="pin the user core's key: act only on notices it signed (env LAAS_CORE_KEY)",
     )
     p.set_defaults(func=_cmd_simulate)
 

@@ -7,6 +7,8 @@ participants and services. The LDM knows nothing about positioning.
     Participant   the client library: list services, open a session, request
     Provider      the service library: announce, take all input by wildcard, reply
     Core          one per cluster: discovery, pseudonyms, routing of ciphertext
+    SigningKey    an Ed25519 identity: services sign their keys, cores their notices
+    Trust         which service identities a participant or core accepts
     EmbeddedBroker  an in-process MQTT broker for tests and zero-install runs
 """
 
@@ -23,10 +25,13 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    TrustError,
 )
+from ldm.identity import SigningKey
 from ldm.messages import ServiceDescription, ServiceSpec, SessionGrant
 from ldm.participant import Participant, Session
 from ldm.provider import Handler, Provider, ProviderStats, Request
+from ldm.trust import Trust
 
 __all__ = [
     "BrokerProcess",
@@ -55,4 +60,7 @@ __all__ = [
     "Session",
     "SessionError",
     "SessionGrant",
+    "SigningKey",
+    "Trust",
+    "TrustError",
 ]

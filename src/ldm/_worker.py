@@ -1,8 +1,11 @@
 """The worker thread every LDM component runs its logic on.
 
-paho's network thread only puts events on the worker's queue; the worker handles them
+paho's network thread only puts events on the worker's inbox; the worker handles them
 one at a time, so component state needs no locks, and runs ``tick`` between events.
 ``stop_worker`` ends the thread before the next item, however long the backlog.
+
+The inbox is a plain FIFO unless the component brings its own `Inbox`: the core uses an
+`ldm.intake.FairQueue`, which serves its participants round-robin.
 """
 
 from __future__ import annotations
@@ -11,11 +14,11 @@ import logging
 import queue
 import threading
 import time
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 from ldm.transport import Connected
 
-__all__ = ["Worker"]
+__all__ = ["Inbox", "Worker"]
 
 log = logging.getLogger(__name__)
 
@@ -23,18 +26,62 @@ _Item = TypeVar("_Item")
 _STOP = object()
 
 
+class Inbox(Protocol):
+    """Where a worker's items wait; every method is safe from any thread."""
+
+    def put(self, item: object) -> None:
+        """Queue an item, even past any limit (control events, the stop sentinel)."""
+
+    def offer(self, item: object) -> bool:
+        """Queue an item within the inbox's limit; False if it was not queued."""
+        ...
+
+    def get(self, timeout: float | None = None) -> object:
+        """The next item, waiting up to `timeout` s; `queue.Empty` if none came."""
+        ...
+
+    def qsize(self) -> int:
+        """Items waiting."""
+        ...
+
+
+class _Fifo:
+    """The default inbox: one FIFO, at most ``limit`` items offered."""
+
+    def __init__(self, limit: int | None) -> None:
+        self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
+        self._limit = limit
+
+    def put(self, item: object) -> None:
+        self._queue.put(item)
+
+    def offer(self, item: object) -> bool:
+        if self._limit is not None and self._queue.qsize() >= self._limit:
+            return False
+        self._queue.put(item)
+        return True
+
+    def get(self, timeout: float | None = None) -> object:
+        return self._queue.get(timeout=timeout)
+
+    def qsize(self) -> int:
+        return self._queue.qsize()
+
+
 class Worker(Generic[_Item]):
     """A named thread that calls ``handle(item)`` per queued item and ``tick(now)``.
 
     With ``limit``, at most that many items wait: `offer` refuses what does not fit,
     while `put` always queues (for the few control events that must never be lost,
-    such as a reconnect).
+    such as a reconnect). ``inbox`` replaces the default FIFO (``limit`` is then the
+    inbox's business).
     """
 
-    def __init__(self, name: str, interval: float, limit: int | None = None) -> None:
-        self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
+    def __init__(
+        self, name: str, interval: float, limit: int | None = None, inbox: Inbox | None = None
+    ) -> None:
+        self._queue: Inbox = _Fifo(limit) if inbox is None else inbox
         self._interval = interval
-        self._limit = limit
         self._stopping = threading.Event()
         self._overflow_lock = threading.Lock()  # several paho threads may overflow at once
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -44,11 +91,8 @@ class Worker(Generic[_Item]):
         self._queue.put(item)
 
     def offer(self, item: _Item) -> bool:
-        """Queue an item unless ``limit`` items already wait; False if it was dropped."""
-        if self._limit is not None and self._queue.qsize() >= self._limit:
-            return False
-        self._queue.put(item)
-        return True
+        """Queue an item unless the inbox is full; False if it was dropped."""
+        return self._queue.offer(item)
 
     def sink(self, item: _Item) -> None:
         """A transport's sink (paho's thread): a reconnect is always queued; other items

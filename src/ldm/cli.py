@@ -3,6 +3,8 @@
     ldm broker --port 1883
     ldm core --name user --cluster mqtt://localhost:1883 --backbone mqtt://hub:1883
     ldm passwd deploy/security/passwd car-17 bike-42=PASSWORD
+    ldm keys new laas.key            # an Ed25519 identity; prints its public key
+    ldm keys endorse anchor.key laas PUBLIC_KEY
 
 A core's passwords come from environment variables (``--password-env``, default
 LDM_PASSWORD; ``--backbone-password-env``, default LDM_BACKBONE_PASSWORD), never from the
@@ -24,10 +26,18 @@ from typing import Any
 from ldm.broker import EmbeddedBroker
 from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core import Core
-from ldm.errors import LdmError, PasswordFileError
+from ldm.errors import ConfigError, LdmError, PasswordFileError
+from ldm.identity import SigningKey, endorse
 from ldm.passwd import random_password, set_passwords
 
-__all__ = ["broker_settings", "core_config", "main", "password_entries", "wait_for_signal"]
+__all__ = [
+    "broker_settings",
+    "core_config",
+    "main",
+    "password_entries",
+    "pins",
+    "wait_for_signal",
+]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -72,6 +82,40 @@ def _parser() -> argparse.ArgumentParser:
         help="largest participant message, bytes",
     )
     core.add_argument("--data-qos", type=int, default=0, choices=(0, 1, 2), help="QoS of data")
+    core.add_argument(
+        "--identity",
+        type=Path,
+        help="the core's Ed25519 key file (made if missing); participants pin its public key",
+    )
+    core.add_argument(
+        "--trust-service",
+        action="append",
+        default=[],
+        metavar="SERVICE=KEY",
+        help="take announcements of SERVICE only if signed by identity KEY (repeatable)",
+    )
+    core.add_argument(
+        "--trust-anchor",
+        action="append",
+        default=[],
+        metavar="KEY",
+        help="take services whose identity this anchor endorsed (repeatable)",
+    )
+
+    keys = sub.add_parser("keys", help="make and show Ed25519 identity keys")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True)
+    new = keys_sub.add_parser(
+        "new", help="write a new private key (mode 0600), print its public key"
+    )
+    new.add_argument("file", type=Path, metavar="FILE")
+    show = keys_sub.add_parser("show", help="print the public key of a private key file")
+    show.add_argument("file", type=Path, metavar="FILE")
+    endorse_ = keys_sub.add_parser(
+        "endorse", help="print an anchor's endorsement of a service identity"
+    )
+    endorse_.add_argument("anchor", type=Path, metavar="ANCHOR_FILE")
+    endorse_.add_argument("service", metavar="SERVICE")
+    endorse_.add_argument("identity", metavar="IDENTITY_PUBLIC_KEY")
 
     passwd = sub.add_parser(
         "passwd",
@@ -160,7 +204,42 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
         burst=args.burst,
         max_clock_skew=args.max_clock_skew,
         max_payload=args.max_payload,
+        identity_file=args.identity,
+        service_keys=pins(args.trust_service),
+        anchors=args.trust_anchor,
     )
+
+
+def pins(entries: Sequence[str]) -> dict[str, str]:
+    """SERVICE=KEY entries -> {service: key}; ConfigError names a malformed one."""
+    result: dict[str, str] = {}
+    for entry in entries:
+        service, sep, key = entry.partition("=")
+        if not sep or not service or not key:
+            raise ConfigError(f"--trust-service {entry!r}: use SERVICE=KEY")
+        result[service] = key
+    return result
+
+
+def _keys(args: argparse.Namespace) -> int:
+    """`ldm keys`: stdout carries only public keys and endorsements, never a private key."""
+    try:
+        if args.keys_command == "new":
+            if args.file.exists():
+                print(f"ldm keys: {args.file} exists; not overwriting a key", file=sys.stderr)
+                return 2
+            key = SigningKey.generate()
+            key.save(args.file)
+        else:
+            key = SigningKey.load(args.anchor if args.keys_command == "endorse" else args.file)
+    except OSError as exc:
+        print(f"ldm keys: cannot write {args.file}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    if args.keys_command == "endorse":
+        print(endorse(key, args.service, args.identity))
+    else:
+        print(key.public)
+    return 0
 
 
 def wait_for_signal() -> None:
@@ -197,6 +276,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "passwd":
             return _passwd(args)
+        if args.command == "keys":
+            return _keys(args)
         if args.command == "broker":
             broker = EmbeddedBroker(args.host, args.port).start()
             print(f"ldm broker listening on {broker.url}", flush=True)
@@ -205,7 +286,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             core = Core(core_config(args)).start(timeout=30)
             backbone = f" and {args.backbone}" if args.backbone else ""
-            print(f"ldm core {args.name} running on {args.cluster}{backbone}", flush=True)
+            print(
+                f"ldm core {args.name} running on {args.cluster}{backbone}; "
+                f"its key (participants pin it): {core.public_key}",
+                flush=True,
+            )
             wait_for_signal()
             core.stop()
     except LdmError as exc:

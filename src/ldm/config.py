@@ -154,12 +154,26 @@ class CoreConfig(_Settings):
     Protection against misbehaving participants (each refusal is answered with a
     ``rejected`` notice on the participant's session topic, at most 10 notices per
     second and client, and counted in `CoreStats`): a token bucket per participant
-    client id admits ``rate`` messages per second on average and ``burst`` at once;
-    payloads over ``max_payload`` bytes are refused before they are parsed; input
-    stamped more than ``max_clock_skew`` seconds in the future is refused (it would
-    escape the ``max_age`` check); a session's new ephemeral key sooner than
-    ``rekey_interval`` after the last is refused. Stale input is dropped and counted
-    (``dropped_stale``), not answered.
+    client id admits ``rate`` messages per second on average and ``burst`` at once. It
+    is applied as messages arrive, on the network thread, before they share a queue
+    with anyone; what it admits waits in the client's own queue, and the queues are
+    served round-robin (`ldm.intake`), so a flooding client delays each other client
+    by at most one message per round. Input under one of the client's session keys and
+    everything else of that client (session requests, new keys, unreadable input) have
+    a bucket each, so on a broker without ACLs input forged on a client's topics does
+    not use up its sessions' budget unless it copies a session's key (the key is
+    visible in every input). Payloads over ``max_payload`` bytes are refused before
+    they are parsed; input stamped more than ``max_clock_skew`` seconds in the future
+    is refused (it would escape the ``max_age`` check); a session's new ephemeral key
+    sooner than ``rekey_interval`` after the last is refused. Stale input is dropped and
+    counted (``dropped_stale``), not answered.
+
+    Nothing a participant publishes stays retained on the cluster broker: the core
+    clears each retained message it is sent under ``ldm/p/+/up/#`` (an empty retained
+    publish) and never takes one as input; as MQTT 3.1.1 brokers hide the flag on live
+    delivery, it subscribes again every ``retain_sweep`` seconds, so the broker re-sends
+    what is retained there, flagged. A retained participant message is gone within
+    ``retain_sweep`` plus one ``tick`` and a round trip.
     """
 
     name: str
@@ -171,12 +185,21 @@ class CoreConfig(_Settings):
     service_ttl: float = Field(default=30.0, gt=0)
     max_age: float = Field(default=2.0, gt=0)
     data_qos: int = Field(default=0, ge=0, le=2)
-    rate: float = Field(default=200.0, gt=0)
-    burst: float = Field(default=400.0, ge=1)
+    rate: float = Field(default=50.0, gt=0)
+    """Messages per second and participant (average). 50: five times a 10 Hz GNSS
+    receiver, the fastest positioning client, or a 5 Hz one replayed at 10x, with room
+    for its session requests; every admitted message may reach the service, so this is
+    also what one client can make a service do. Raise it for chattier services."""
+    burst: float = Field(default=100.0, ge=1)
+    """Messages a participant may send at once: 10 s of a 10 Hz receiver, enough for
+    the backlog it re-sends after a reconnect."""
     max_payload: int = Field(default=64 * 1024, ge=256)
     max_clock_skew: float = Field(default=30.0, gt=0)
     max_queue: int = Field(default=100_000, ge=1)
     """Messages waiting for the core's worker; more are dropped (``dropped_overload``)."""
+    retain_sweep: float = Field(default=5.0, gt=0)
+    """Seconds between re-subscriptions of the participant filter, after which the core
+    clears what participants left retained (see above)."""
     identity_file: Path | None = None
     """The core's Ed25519 key (PEM; made there if missing), with which it signs its
     notices and service lists; None: a new key each start (participants cannot pin it)."""

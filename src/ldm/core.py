@@ -22,19 +22,23 @@ All state lives on the core's worker thread; paho's threads only enqueue events.
 
 from __future__ import annotations
 
+import hmac
 import json
 import logging
 import secrets
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, CoreConfig, build
-from ldm.identity import SigningKey
+from ldm.crypto import KeyPair, input_tag
+from ldm.identity import SigningKey, verify
+from ldm.intake import FairQueue
 from ldm.messages import (
     Announcement,
     CoreStatus,
@@ -45,6 +49,7 @@ from ldm.messages import (
     SessionGrant,
     SessionNotice,
     SessionRequest,
+    Withdrawal,
 )
 from ldm.transport import Connected, Event, Message, Transport, Will
 from ldm.trust import Trust
@@ -58,6 +63,9 @@ _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _TOKEN = topics.TOKEN_PATTERN
 _NOTICE_RATE = 10.0  # rejection notices per second and client, so refusing costs little
+_ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
+    Announcement | Withdrawal
+)
 _REPAIR_RATE = 5.0  # service-list repairs per second: a second core on the broker cannot loop us
 
 
@@ -91,6 +99,7 @@ class _Session:
     current: _Pseudonym | None = None
     old: list[_Pseudonym] = field(default_factory=list)
     next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
+    secret: bytes | None = None  # shared with the participant by the latest grant
 
 
 @dataclass(slots=True)
@@ -114,10 +123,65 @@ class _Bucket:
 
 @dataclass(slots=True)
 class _Limits:
-    """One participant's input bucket and the bucket of notices that answer refusals."""
+    """One participant's budgets, each a bucket of ``rate``/``burst`` (input) or 10/s
+    (notices): ``own`` pays for input under one of its sessions' current or in-grace
+    ephemeral keys, ``other`` for all else of this client (session requests, new or
+    unknown keys, unreadable messages); each has its own bucket of refusal notices.
+    Input forged on this client's topics (an open broker) is ``other`` unless it
+    copies a key of the client's, so it cannot use up ``own``."""
 
-    input: _Bucket
-    notices: _Bucket
+    own: _Bucket
+    other: _Bucket
+    own_notices: _Bucket
+    other_notices: _Bucket
+
+    @classmethod
+    def new(cls, now: float, burst: float) -> _Limits:
+        return cls(
+            _Bucket(burst, now),
+            _Bucket(burst, now),
+            _Bucket(_NOTICE_RATE, now),
+            _Bucket(_NOTICE_RATE, now),
+        )
+
+    def full(self, now: float, rate: float, burst: float) -> bool:
+        """All four buckets are full: the same as having none."""
+        return (
+            self.own.full(now, rate, burst)
+            and self.other.full(now, rate, burst)
+            and self.own_notices.full(now, _NOTICE_RATE, _NOTICE_RATE)
+            and self.other_notices.full(now, _NOTICE_RATE, _NOTICE_RATE)
+        )
+
+
+_UP = "ldm/p/"  # every participant topic the core subscribes to is ldm/p/{client}/up/...
+_K = b'"k":"'
+_K_LEN = 44  # base64 of a 32-byte X25519 key
+
+
+def envelope_key(payload: bytes) -> bytes | None:
+    """The ``k`` of an input envelope as `Envelope.encode` writes it, found without
+    parsing (``"k":"`` within the first 256 bytes, then 44 characters and ``"``).
+
+    Only to choose the bucket that pays for a message: a payload that tricks it gains
+    nothing a copied key would not (see `_Limits`); the message is parsed properly later.
+    """
+    at = payload.find(_K, 0, 256)
+    if at < 0:
+        return None
+    start = at + len(_K)
+    end = start + _K_LEN
+    return payload[start:end] if payload[end : end + 1] == b'"' else None
+
+
+@dataclass(frozen=True, slots=True)
+class _Admitted(Message):
+    """A participant message taken at intake (`Core.sink`), with what intake decided:
+    ``own``: charged to the bucket of its session's key; ``refused``: over the rate,
+    only its ``rejected`` notice is left to send (the notice bucket already paid)."""
+
+    own: bool = False
+    refused: bool = False
 
 
 @dataclass(slots=True)
@@ -155,15 +219,33 @@ class CoreStats:
     """Announcements not signed by a pinned or endorsed identity (with trust set)."""
     repaired_list: int = 0
     """Service lists on the cluster that were not this core's own, replaced by it."""
+    answered_unauthentic: int = 0
+    """Input without the tag of its session's secret (answered ``nosession``)."""
     rotations: int = 0
     sessions_expired: int = 0
+    dropped_retained: int = 0
+    """Participant messages the broker delivered as retained (each cleared on the
+    broker with an empty retained publish; old, so never taken as input), and empty
+    ones (MQTT's deletion of a retained message, such as the echo of that clearing):
+    dropped at intake, unanswered."""
 
 
 class Core(Worker[Event]):
     """An LDM core. ``start()`` connects and runs it in background threads; ``stop()`` ends it."""
 
     def __init__(self, config: CoreConfig) -> None:
-        super().__init__(f"ldm-core-{config.name}", config.tick, limit=config.max_queue)
+        self._intake: FairQueue[object] = FairQueue(config.max_queue)
+        """Participant messages wait per client id, served round-robin; all else first."""
+        super().__init__(f"ldm-core-{config.name}", config.tick, inbox=self._intake)
+        self._guard = threading.Lock()
+        """What paho's threads share with the worker: ``_limits``, ``_keys``, and the
+        counters admission writes (rejected_rate, notices_suppressed, dropped_overload,
+        dropped_retained)."""
+        self._keys: dict[tuple[str, str], tuple[tuple[bytes, float], ...]] = {}
+        """(client, service) -> the session's keys with the end of their grace; the
+        worker writes it, intake reads it to charge input to the right bucket."""
+        self._own = False  # worker: the message being handled was charged to ``own``
+        self._next_sweep = time.time() + config.retain_sweep
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
@@ -261,8 +343,69 @@ class Core(Worker[Event]):
     def session_count(self) -> int:
         return len(self._sessions)
 
+    # --- intake (paho's threads) ---------------------------------------------------------
+
+    def sink(self, item: Event) -> None:
+        """Both transports' sink. A participant's message is admitted here (`_admit`),
+        before it shares a queue with anyone; everything else is queued to be handled
+        first (`FairQueue`'s urgent lane: providers' replies, announcements and the
+        backbone come from the LDM's own accounts and finish work already admitted)."""
+        if isinstance(item, Message) and item.source == _CLUSTER and item.topic.startswith(_UP):
+            self._admit(item)
+        else:
+            super().sink(item)
+
     def overflowed(self) -> None:
-        self.stats.dropped_overload += 1
+        with self._guard:
+            self.stats.dropped_overload += 1
+
+    def _admit(self, msg: Message) -> None:
+        """Intake of ``ldm/p/{client}/up/...`` on paho's thread, without parsing JSON.
+
+        Retained (old: cleared on the broker) and empty messages are dropped. The rest
+        is charged to the client's ``own`` bucket if its envelope key is one of that
+        session's keys, else to ``other`` (`_Limits`); over the rate it is refused here
+        (its ``rejected`` notice, if the notice bucket pays, is queued in the client's
+        lane), else queued in the client's lane of the fair queue.
+        """
+        if msg.retain or not msg.payload:
+            if msg.payload:  # an empty retained publish deletes it on the broker
+                self.cluster.publish(msg.topic, b"", qos=1, retain=True)
+            with self._guard:
+                self.stats.dropped_retained += 1
+            return
+        levels = msg.topic.split("/", 6)  # ldm, p, client, up, kind, service, (more)
+        client = levels[2]
+        service = levels[5] if len(levels) == 6 and levels[4] == "data" else ""
+        cfg = self.config
+        now = time.time()
+        notice = False
+        with self._guard:
+            keys = self._keys.get((client, service)) if service else None
+            own = False
+            if keys:
+                k = envelope_key(msg.payload)
+                own = k is not None and any(key == k and until > now for key, until in keys)
+            limits = self._limits.get(client)
+            if limits is None:
+                limits = self._limits[client] = _Limits.new(now, cfg.burst)
+            admitted = (limits.own if own else limits.other).take(now, cfg.rate, cfg.burst)
+            if not admitted:
+                self.stats.rejected_rate += 1
+                notice = len(levels) >= 5 and self._take_notice(limits, own, now)
+        if admitted or notice:
+            item = _Admitted(msg.topic, msg.payload, msg.qos, False, msg.source, own, not admitted)
+            if not self._intake.offer(item, client) and admitted:
+                self.overflowed()
+
+    def _take_notice(self, limits: _Limits, own: bool, now: float) -> bool:
+        """A token from the notice bucket that pays for this message (hold ``_guard``)."""
+        if (limits.own_notices if own else limits.other_notices).take(
+            now, _NOTICE_RATE, _NOTICE_RATE
+        ):
+            return True
+        self.stats.notices_suppressed += 1
+        return False
 
     # --- worker thread ----------------------------------------------------------------
 
@@ -287,11 +430,17 @@ class Core(Worker[Event]):
             if now - route.last_seen > self.config.idle_timeout + self.config.grace:
                 del self._routes[pseudonym]
         cfg = self.config
-        for client, limits in list(self._limits.items()):
-            if limits.input.full(now, cfg.rate, cfg.burst) and limits.notices.full(
-                now, _NOTICE_RATE, _NOTICE_RATE
-            ):
-                del self._limits[client]  # a full bucket is the same as no bucket
+        with self._guard:
+            for client, limits in list(self._limits.items()):
+                if limits.full(now, cfg.rate, cfg.burst):
+                    del self._limits[client]  # full buckets are the same as none
+            for gone in [key for key in self._keys if key not in self._sessions]:
+                del self._keys[gone]
+        if now >= self._next_sweep:
+            # The broker sends what is retained under the filter again, flagged retained:
+            # `_admit` clears each. (A live message never shows the flag in MQTT 3.1.1.)
+            self._next_sweep = now + cfg.retain_sweep
+            self.cluster.subscribe(topics.PARTICIPANT_UP_FILTER, 1)
 
     def _on_connected(self, source: str) -> None:
         if source == _CLUSTER:
@@ -357,29 +506,35 @@ class Core(Worker[Event]):
     def _from_participant(self, msg: Message, levels: list[str]) -> None:
         """``ldm/p/{client}/up/session`` or ``ldm/p/{client}/up/data/{service}``.
 
-        In order, each cheaper than the next: the client's token bucket, the size
-        limit, then decoding. Every refusal is counted and answered to this client only.
+        The client's token bucket was applied at intake (`_admit`, paho's thread; a
+        message refused there arrives only to have its notice sent). Here, in order,
+        each cheaper than the next: the size limit, the topic, then decoding. Every
+        refusal is counted and answered to this client only, from the notice bucket
+        that intake charged the message to.
         """
         client = levels[2]
         is_session = levels[4] == "session" and len(levels) == 5
         is_data = levels[4] == "data" and len(levels) == 6
         service = levels[5] if is_data else ""
+        admitted = msg if isinstance(msg, _Admitted) else None
+        self._own = admitted is not None and admitted.own
+        try:
+            if admitted is not None and admitted.refused:
+                cfg = self.config
+                error = (
+                    f"more than {cfg.rate:g} messages per second (burst {cfg.burst:g}); slow down"
+                )
+                self._reject(client, service, "rate_limited", error, payload=msg.payload, paid=True)
+            else:
+                self._participant_message(msg, client, service, is_session, is_data)
+        finally:
+            self._own = False
+
+    def _participant_message(
+        self, msg: Message, client: str, service: str, is_session: bool, is_data: bool
+    ) -> None:
         cfg = self.config
         now = time.time()
-        limits = self._limits.get(client)
-        if limits is None:
-            limits = _Limits(_Bucket(cfg.burst, now), _Bucket(_NOTICE_RATE, now))
-            self._limits[client] = limits
-        if not limits.input.take(now, cfg.rate, cfg.burst):
-            self.stats.rejected_rate += 1
-            self._reject(
-                client,
-                service,
-                "rate_limited",
-                f"more than {cfg.rate:g} messages per second (burst {cfg.burst:g}); slow down",
-                payload=msg.payload,
-            )
-            return
         if len(msg.payload) > cfg.max_payload:
             self.stats.rejected_size += 1
             self._reject(
@@ -405,11 +560,25 @@ class Core(Worker[Event]):
                 self._participant_input(
                     client, service, Envelope.model_validate_json(msg.payload), now
                 )
+                self._share_keys(client, service)
         except ValidationError as exc:
             self.stats.dropped_invalid += 1
             what = "session request" if is_session else "input envelope"
             error = f"{what}: {describe(exc)}"
             self._reject(client, service, "invalid", error, payload=msg.payload)
+
+    def _share_keys(self, client: str, service: str) -> None:
+        """Tell intake the session's keys (current, and old ones until their grace ends)."""
+        session = self._sessions.get((client, service))
+        keys: tuple[tuple[bytes, float], ...] = ()
+        if session is not None and session.current is not None:
+            keys = tuple((p.key.encode(), p.until) for p in (session.current, *session.old))
+        if self._keys.get((client, service), ()) != keys:  # only the worker writes it
+            with self._guard:
+                if keys:
+                    self._keys[(client, service)] = keys
+                else:
+                    self._keys.pop((client, service), None)
 
     def _reject(
         self,
@@ -420,14 +589,16 @@ class Core(Worker[Event]):
         *,
         c: str | None = None,
         payload: bytes = b"",
+        paid: bool = False,
     ) -> None:
-        """Answer a refused message on the client's session topic, within its notice bucket.
+        """Answer a refused message on the client's session topic, within its notice bucket
+        (``paid``: intake took the token already).
 
         The correlation id is ``c``, or read from ``payload`` only once the notice is
         admitted and only if the payload is within ``max_payload``, so a flood costs no
         parsing.
         """
-        if not self._admit_notice(client):
+        if not paid and not self._admit_notice(client):
             return
         if c is None and len(payload) <= self.config.max_payload:
             c = correlation(payload)
@@ -440,23 +611,23 @@ class Core(Worker[Event]):
             self._notify(client, notice)
 
     def _admit_notice(self, client: str) -> bool:
-        """Take a token from the client's notice bucket (10/s): False when it is empty."""
-        limits = self._limits.get(client)
-        if limits is not None and not limits.notices.take(time.time(), _NOTICE_RATE, _NOTICE_RATE):
-            self.stats.notices_suppressed += 1
-            return False
-        return True
+        """Take a token from the client's notice bucket (10/s) that pays for the message
+        being handled (``own`` or ``other``, as intake charged it): False when empty.
+        A client intake never saw (no buckets) is answered."""
+        with self._guard:
+            limits = self._limits.get(client)
+            return limits is None or self._take_notice(limits, self._own, time.time())
 
     # --- services ---------------------------------------------------------------------
 
     def _local_announcement(self, service: str, payload: bytes) -> None:
-        if not payload:
+        ann = _ANNOUNCE_OR_WITHDRAW.validate_json(payload) if payload else None
+        if not isinstance(ann, Announcement):
             svc = self._services.get(service)
-            if svc is not None and svc.origin == self.name:
+            if svc is not None and svc.origin == self.name and self._withdrawn(svc, ann):
                 self._remove_service(service)
             self.stats.control += 1
             return
-        ann = Announcement.model_validate_json(payload)
         if ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
@@ -467,6 +638,23 @@ class Core(Worker[Event]):
         self._services[service] = svc
         self._announce_backbone(service, svc)
         self._publish_list()
+
+    def _withdrawn(self, svc: _Service, goodbye: Withdrawal | None) -> bool:
+        """Whether a withdrawal (None: an empty payload) ends ``svc``.
+
+        With trust set, only the service's own signed withdrawal of its current key
+        does: anyone could clear a retained topic on a broker without ACL.
+        """
+        if self.trust.open:
+            return True
+        desc = svc.description
+        return (
+            goodbye is not None
+            and goodbye.identity is not None
+            and goodbye.identity == desc.identity
+            and goodbye.issued == desc.issued
+            and verify(goodbye.identity, goodbye.signed_text(), goodbye.sig)
+        )
 
     def _acceptable(self, ann: Announcement) -> bool:
         """Fresh, not from the future, and signed by a trusted identity (else counted).
@@ -592,6 +780,11 @@ class Core(Worker[Event]):
             self._sessions[(client, req.service)] = session
         session.last_seen = now
         cfg = self.config
+        auth_key = None
+        if req.k is not None:  # the latest grant's secret is the session's
+            ours = KeyPair()
+            session.secret = ours.session_secret(req.k)
+            auth_key = ours.public
         grant = SessionGrant(
             service=svc.description,
             session=secrets.token_urlsafe(9),
@@ -603,6 +796,7 @@ class Core(Worker[Event]):
             max_age=cfg.max_age,
             data_qos=cfg.data_qos,
             rekey_interval=cfg.rekey_interval,
+            auth_key=auth_key,
         )
         self.stats.granted += 1
         self._notify(client, SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant))
@@ -629,6 +823,15 @@ class Core(Worker[Event]):
             self.stats.answered_nosession += 1
             self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
             return
+        if session.secret is not None and (
+            env.m is None
+            or not hmac.compare_digest(env.m, input_tag(session.secret, env.c, env.t, env.k, env.d))
+        ):
+            # Forged (a broker without ACL), or sent under a secret a newer grant
+            # replaced: the participant asks for the session again.
+            self.stats.answered_unauthentic += 1
+            self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
+            return
         svc = self._services.get(service)
         if svc is None:
             self.stats.answered_refused += 1
@@ -648,7 +851,7 @@ class Core(Worker[Event]):
             )
             self._reject(client, service, "rate_limited", error, c=env.c)
             return
-        payload = env.encode()
+        payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
         if svc.origin == self.name:
             self.cluster.publish(
                 topics.provider_input(service, pseudonym), payload, self.config.data_qos

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import hmac
 import os
 
 from cryptography.exceptions import InvalidTag
@@ -29,7 +30,7 @@ from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from ldm.errors import CryptoError
 
-__all__ = ["KeyPair", "SessionCipher", "aad"]
+__all__ = ["KeyPair", "SessionCipher", "aad", "input_tag"]
 
 _NONCE = 12
 
@@ -62,6 +63,25 @@ class KeyPair:
         except ValueError as exc:
             raise CryptoError("a private key must be 32 raw bytes") from exc
 
+    def session_secret(self, peer_public: str) -> bytes:
+        """The secret a participant and its core share for one granted session.
+
+        The participant sends a fresh public key with its session request; the core
+        answers with one of its own in the grant:
+
+            secret = HKDF-SHA256(X25519(own, peer), info="ldm-session/1" | both keys sorted)
+
+        An observer of the broker sees both public keys and cannot compute it.
+        """
+        try:
+            peer = X25519PublicKey.from_public_bytes(base64.b64decode(peer_public, validate=True))
+            shared = self._private.exchange(peer)
+        except (ValueError, binascii.Error) as exc:
+            raise CryptoError("a public key must be base64 of 32 raw bytes") from exc
+        first, second = sorted((self.public, peer_public))
+        info = f"ldm-session/1|{first}|{second}".encode()
+        return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(shared)
+
     def cipher(self, peer_public: str, *, initiator: bool) -> SessionCipher:
         """Derive the session cipher with a peer; the participant is the initiator."""
         try:
@@ -74,6 +94,19 @@ class KeyPair:
         okm = HKDF(algorithm=hashes.SHA256(), length=64, salt=None, info=info).derive(shared)
         up, down = okm[:32], okm[32:]
         return SessionCipher(up, down) if initiator else SessionCipher(down, up)
+
+
+def input_tag(secret: bytes, c: str, t: float, k: str, d: str) -> str:
+    """The participant's tag on one input envelope, which its core checks:
+
+        m = base64(HMAC-SHA256(secret, c | repr(t) | k | d)[:16])
+
+    It proves the input comes from the holder of the session's secret, so input forged
+    on the participant's topics cannot change its key or reach the service under its
+    pseudonym, even on a broker without ACL.
+    """
+    mac = hmac.digest(secret, f"{c}|{t!r}|{k}|{d}".encode(), "sha256")[:16]
+    return base64.b64encode(mac).decode()
 
 
 class SessionCipher:

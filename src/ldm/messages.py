@@ -25,6 +25,7 @@ __all__ = [
     "SessionGrant",
     "SessionNotice",
     "SessionRequest",
+    "Withdrawal",
 ]
 
 _NAME = NAME_PATTERN.pattern
@@ -85,6 +86,22 @@ class Announcement(_Wire):
         return f"ldm-announce/1|{self.service.signature}|{self.t!r}".encode()
 
 
+class Withdrawal(_Wire):
+    """Provider -> core, on the announce topic: the service with this key is gone.
+
+    A provider's last will and its goodbye. Signed by the service's identity for the
+    session key it withdraws (``issued``), so a replay cannot withdraw a later key.
+    """
+
+    withdrawn: str = Field(pattern=_NAME)
+    identity: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
+    issued: float = 0.0
+    sig: str | None = Field(default=None, pattern=_B64, max_length=128)
+
+    def signed_text(self) -> bytes:
+        return canonical("ldm-withdraw/1", self.model_dump(mode="json", exclude={"sig"}))
+
+
 class ServiceList(_Wire):
     """The retained list of services a cluster's participants can use."""
 
@@ -111,6 +128,8 @@ class SessionRequest(_Wire):
     c: str = Field(pattern=_TOKEN)
     service: str = Field(pattern=_NAME)
     t: float
+    k: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
+    """A fresh X25519 public key: the core derives the session's secret with it."""
 
 
 class SessionGrant(_Wire):
@@ -127,6 +146,9 @@ class SessionGrant(_Wire):
     data_qos: int
     rekey_interval: float = 1.0
     """The shortest time between two ephemeral keys the core accepts for a session."""
+    auth_key: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
+    """The core's X25519 key for this grant, answering the request's ``k``: from the
+    two the participant derives the secret with which it tags its input (``m``)."""
 
 
 Rejection = Literal["invalid", "too_large", "rate_limited", "clock"]
@@ -172,6 +194,8 @@ class Envelope(_Wire):
     t: float
     k: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
     d: str = Field(pattern=_B64)
+    m: str | None = Field(default=None, pattern=_B64, min_length=24, max_length=24)
+    """The participant's tag (`ldm.crypto.input_tag`), checked and removed by its core."""
 
     def encode(self) -> bytes:
         """Compact JSON, without unset optional fields."""

@@ -28,7 +28,7 @@ from pydantic import ValidationError
 from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, ParticipantConfig, build
-from ldm.crypto import KeyPair, SessionCipher, aad
+from ldm.crypto import KeyPair, SessionCipher, aad, input_tag
 from ldm.errors import (
     ConnectError,
     CryptoError,
@@ -53,6 +53,9 @@ from ldm.trust import Trust
 __all__ = ["Participant", "Session"]
 
 Payload = dict[str, Any]
+
+
+_MAX_REQUESTS = 64  # session requests awaiting their grant, remembered at once
 
 
 def _token() -> str:
@@ -96,13 +99,18 @@ class Session:
     """An open session with one service: send input, get replies (thread-safe)."""
 
     def __init__(
-        self, participant: Participant, grant: SessionGrant, keys: _Keys | None = None
+        self,
+        participant: Participant,
+        grant: SessionGrant,
+        keys: _Keys | None = None,
+        secret: bytes | None = None,
     ) -> None:
         self._participant = participant
         self.grant = grant
         self._keys = keys or _Keys.new(grant.service)
         self._pending: dict[str, _Pending] = {}
         self._lock = threading.Lock()
+        self._secret = secret  # shared with the core by the grant; tags every input
         self._reopen_c: str | None = None
         self._reopen_at = 0.0
         self._rotated_at = time.time()
@@ -151,7 +159,9 @@ class Session:
         pending.sent = time.time()
         pending.disconnects = self._participant.transport.disconnects
         sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
-        env = Envelope(c=c, t=pending.sent, k=keys.pair.public, d=sealed)
+        k, secret = keys.pair.public, self._secret
+        tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
+        env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
         if not self._participant._publish_input(self, env):
             self._fail(
                 c,
@@ -176,7 +186,7 @@ class Session:
         self.rotations += 1
         return True
 
-    def _regrant(self, grant: SessionGrant) -> None:
+    def _regrant(self, grant: SessionGrant, secret: bytes | None) -> None:
         """The core granted the session again: new key, re-send what is still waiting.
 
         Each re-sent input gets a new correlation id: the old one travelled under the
@@ -186,6 +196,7 @@ class Session:
         """
         changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
+        self._secret = secret
         if changed:
             self._keys = _Keys.new(grant.service)
             self._rotated_at = time.time()
@@ -269,7 +280,10 @@ class Participant(Worker[Event]):
         self._distrusted: dict[str, str] = {}  # service -> why its last grant was refused
         self.ignored = 0
         """Notices, lists and replies ignored as unauthentic (forged, replayed, unsigned)."""
-        self._opening: dict[str, Future[SessionGrant]] = {}
+        self._opening: dict[str, Future[tuple[SessionGrant, bytes | None]]] = {}
+        self._requests: dict[str, KeyPair] = {}
+        """Request correlation id -> the key sent with it, until its grant (or a newer
+        request) comes: with the grant's ``auth_key`` it gives the session's secret."""
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
         self.transport = Transport(
@@ -328,12 +342,12 @@ class Participant(Worker[Event]):
         the core does not answer in time.
         """
         c = _token()
-        future: Future[SessionGrant] = Future()
+        future: Future[tuple[SessionGrant, bytes | None]] = Future()
         with self._lock:
             self._opening[c] = future
         self._request_session(c, service)
         try:
-            grant = future.result(timeout)
+            grant, secret = future.result(timeout)
         except FutureTimeout:
             problem = self._distrusted.get(service)
             if problem is not None:
@@ -350,14 +364,20 @@ class Participant(Worker[Event]):
             # The same service key: keep the ephemeral key (and so the pseudonym), as a
             # new key so soon would be refused by the core (rekey_interval).
             same = old is not None and old.service.public_key == grant.service.public_key
-            session = Session(self, grant, old._keys if old is not None and same else None)
+            keys = old._keys if old is not None and same else None
+            session = Session(self, grant, keys, secret)
             self._sessions[service] = session
         if old is not None:
             old._fail_all(SessionError(f"the session with {service!r} was opened again"))
         return session
 
     def _request_session(self, c: str, service: str) -> None:
-        request = SessionRequest(c=c, service=service, t=time.time())
+        key = KeyPair()
+        with self._lock:
+            if len(self._requests) >= _MAX_REQUESTS:  # unanswered ones: forget the oldest
+                del self._requests[next(iter(self._requests))]
+            self._requests[c] = key
+        request = SessionRequest(c=c, service=service, t=time.time(), k=key.public)
         self.transport.publish(
             topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
         )
@@ -448,11 +468,15 @@ class Participant(Worker[Event]):
                 return
             with self._lock:
                 opening = self._opening.get(notice.c or "")
+                key = self._requests.pop(notice.c or "", None)
+            secret = None
+            if key is not None and notice.grant.auth_key is not None:
+                secret = key.session_secret(notice.grant.auth_key)
             if opening is not None:
-                _settle(opening, notice.grant)  # a duplicate (QoS 1) grant finds it done
+                _settle(opening, (notice.grant, secret))  # a duplicate (QoS 1) finds it done
             elif session is not None and notice.c == session._reopen_c:
                 session._reopen_c = None
-                session._regrant(notice.grant)
+                session._regrant(notice.grant, secret)
         elif notice.kind == "refused":
             error = ServiceNotFound(notice.error or f"service {notice.service!r} refused")
             with self._lock:

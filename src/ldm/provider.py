@@ -30,7 +30,7 @@ from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import CryptoError, SessionError
 from ldm.identity import SigningKey
-from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec
+from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
 from ldm.transport import Connected, Event, Message, Transport, Will
 
 __all__ = ["Handler", "Provider", "ProviderStats", "Request"]
@@ -135,6 +135,10 @@ class Provider(Worker[Event]):
             update={"signature": identity.sign(unsigned.signed_text())}
         )
         self.name = spec.name
+        goodbye = Withdrawal(withdrawn=spec.name, identity=identity.public, issued=unsigned.issued)
+        goodbye = goodbye.model_copy(update={"sig": identity.sign(goodbye.signed_text())})
+        self._goodbye = goodbye.model_dump_json().encode()
+        """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self._handler = handler
         self._peers: OrderedDict[str, _Peer] = OrderedDict()
@@ -147,7 +151,7 @@ class Provider(Worker[Event]):
             client_id=client_id,
             sink=self.sink,
             name=f"provider-{spec.name}",
-            will=Will(topics.announce(spec.name), b"", qos=1, retain=True),
+            will=Will(topics.announce(spec.name), self._goodbye, qos=1, retain=True),
         )
         # Subscribed at QoS 2 unless set, input arrives at the QoS the core sent it with.
         qos = 2 if config.data_qos is None else config.data_qos
@@ -177,7 +181,9 @@ class Provider(Worker[Event]):
     def stop(self) -> None:
         """Withdraw the announcement and disconnect."""
         self.stop_worker()
-        self.transport.publish_and_wait(topics.announce(self.name), b"", qos=1, retain=True)
+        self.transport.publish_and_wait(
+            topics.announce(self.name), self._goodbye, qos=1, retain=True
+        )
         self.transport.stop()
 
     def kill(self) -> None:

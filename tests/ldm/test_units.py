@@ -48,6 +48,9 @@ def test_public_api_is_pinned() -> None:
             "ServiceNotFound",
             "ServiceSpec",
             "Session",
+            "SigningKey",
+            "Trust",
+            "TrustError",
             "SessionError",
             "SessionGrant",
         ]

@@ -1,0 +1,326 @@
+"""Other participants' latency while one participant floods: ``python -m ldm.floodbench``.
+
+    users process: N participants at HZ --+
+                                          +--> user broker <- user core -> backbone broker
+    flooder process: 1 participant,       |     (shipped       (this          ^
+      RATE valid-looking inputs/s --------+      ACL)         process)        |
+                                            service process: service core ----+
+                                              + echo provider -> service broker
+
+The three brokers are Mosquitto processes; the user broker runs the shipped ACL
+(`ldm.brokers.mosquitto_acl`), unless ``--no-acl``. The user core runs in this
+process, the service core with the echo provider in another (as in a deployment, where
+each is a process or a container of its own), the users and the flooder in processes
+of their own. One run has two phases of equal length: a baseline (the users alone),
+then the flood (the flooder publishes properly sealed envelopes under its own session
+key, on its own input topic, at QoS 0, at ``--rate``). Latency is measured per user
+request from just before ``Session.submit`` to the reply's arrival, and a request
+counts in the phase it was sent in. The figure of merit is p99(flood) / p99(baseline);
+the target of issue 11 is at most 2. Other load on the machine shows in the figures:
+on a small shared machine, run it when the machine is otherwise idle, and more than
+once.
+
+Kept out of the test suite (it takes ``2 * phase`` seconds plus set-up);
+``tests/ldm/test_intake.py`` checks the same property structurally and loosely.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import time
+from concurrent.futures import Future
+from dataclasses import asdict, dataclass
+from functools import partial
+from multiprocessing.queues import Queue
+from typing import Any
+
+from ldm.brokers import MosquittoBroker, mosquitto_acl, wait_for
+from ldm.config import BrokerSettings
+from ldm.core import Core
+from ldm.crypto import KeyPair, aad
+from ldm.messages import ServiceSpec
+from ldm.participant import Participant
+from ldm.provider import Provider, Request
+
+__all__ = ["FloodReport", "format_report", "main", "run_flood_bench"]
+
+_CORE_USER = "ldm-core"
+_PROVIDER_USER = "svc-echo"
+_ECHO = ServiceSpec(name="echo", version="1", description="Replies with what it was sent.")
+_SETTLE = 3.0  # s after the flood phase for the last replies
+
+
+@dataclass(frozen=True)
+class PhaseFigures:
+    """Latency of the users' requests sent in one phase (milliseconds)."""
+
+    sent: int
+    answered: int
+    p50_ms: float
+    p99_ms: float
+    max_ms: float
+
+
+@dataclass(frozen=True)
+class FloodReport:
+    baseline: PhaseFigures
+    flood: PhaseFigures
+    ratio: float
+    """p99(flood) / p99(baseline)."""
+    flood_sent: int
+    flood_rate: float
+    """Messages per second the flooder achieved."""
+    core: dict[str, int]
+    """The user core's counters at the end."""
+    settings: dict[str, Any]
+
+
+def _figures(samples: list[tuple[float, float | None]]) -> PhaseFigures:
+    done = sorted(1000.0 * lat for _, lat in samples if lat is not None)
+    if not done:
+        return PhaseFigures(len(samples), 0, math.nan, math.nan, math.nan)
+
+    def pct(q: float) -> float:
+        return done[min(len(done) - 1, max(0, math.ceil(q * len(done)) - 1))]
+
+    return PhaseFigures(len(samples), len(done), pct(0.5), pct(0.99), done[-1])
+
+
+def _echo(request: Request) -> dict[str, Any]:
+    return {"echo": request.payload}
+
+
+# --- child processes ----------------------------------------------------------------
+
+
+def _stamp(into: list[float], future: Future[Any]) -> None:
+    """A done callback: the arrival time of a reply (nothing for a failed request)."""
+    if future.exception() is None:
+        into.append(time.perf_counter())
+
+
+def _users(
+    url: str, n: int, hz: float, start: float, end: float, out: Queue[Any]
+) -> None:  # pragma: no cover - runs in a child process
+    """N participants submit at HZ each from `start` to `end` (wall clock); report
+    [(sent wall time, latency or None)]."""
+    parts = [Participant.create(url, client_id=f"user-{i}").start(timeout=10) for i in range(n)]
+    try:
+        assert wait_for(lambda: all(p.services(0.05) for p in parts), 10), "no service list"
+        sessions = [p.open("echo", timeout=10) for p in parts]
+        records: list[tuple[float, float, list[float]]] = []
+        period = 1.0 / hz
+        time.sleep(max(0.0, start - time.time()))
+        base = time.perf_counter()
+        k = 0
+        while time.time() < end:
+            due = base + k * period / n
+            delay = due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            stamp: list[float] = []
+            sent_wall, sent = time.time(), time.perf_counter()
+            future = sessions[k % n].submit({"i": k})
+            future.add_done_callback(partial(_stamp, stamp))
+            records.append((sent_wall, sent, stamp))
+            k += 1
+        time.sleep(_SETTLE)
+        samples = [(w, (s[0] - sent) if s else None) for w, sent, s in records]
+        out.put(("users", samples))
+    finally:
+        for p in parts:
+            p.stop()
+
+
+def _flooder(
+    url: str, rate: float, start: float, end: float, out: Queue[Any]
+) -> None:  # pragma: no cover - runs in a child process
+    """One participant with a real session floods its own input topic with valid-looking,
+    properly sealed envelopes under its own key, at QoS 0, from `start` to `end`."""
+    p = Participant.create(url, client_id="flooder").start(timeout=10)
+    try:
+        assert wait_for(lambda: p.services(0.05), 10), "no service list"
+        session = p.open("echo", timeout=10)
+        key = KeyPair()
+        cipher = key.cipher(session.service.public_key, initiator=True)
+        topic = session.grant.input_topic
+        out.put(("ready", None))
+        time.sleep(max(0.0, start - time.time()))
+        sent = 0
+        began = time.perf_counter()
+        while time.time() < end:
+            due = began + sent / rate
+            delay = due - time.perf_counter()
+            if delay > 0.002:
+                time.sleep(delay)
+            t = time.time()  # one per batch; the envelope is written by hand, so that the
+            for _ in range(20):  # flooder's own CPU (on the same machine) stays small
+                c = f"f{sent}"
+                d = cipher.seal(b'{"flood":1}', aad(c, t))
+                payload = f'{{"c":"{c}","t":{t!r},"k":"{key.public}","d":"{d}"}}'.encode()
+                p.transport.publish(topic, payload, 0)
+                sent += 1
+        elapsed = time.perf_counter() - began
+        out.put(("flooder", (sent, sent / elapsed if elapsed > 0 else 0.0)))
+    finally:
+        p.stop()
+
+
+def _service_side(
+    service_url: str, backbone_url: str, done: Any, out: Queue[Any]
+) -> None:  # pragma: no cover - runs in a child process
+    """The service core and the echo provider, until `done` is set."""
+    core = Core.create("service", service_url, backbone_url).start(timeout=10)
+    provider = Provider.create(
+        BrokerSettings(url=service_url, username=_PROVIDER_USER), _ECHO, _echo
+    ).start(timeout=10)
+    out.put(("service", None))
+    try:
+        done.wait()
+    finally:
+        provider.stop()
+        core.stop()
+
+
+# --- the run ------------------------------------------------------------------------
+
+
+def run_flood_bench(
+    *,
+    participants: int = 4,
+    hz: float = 5.0,
+    rate: float = 6700.0,
+    phase: float = 10.0,
+    acl: bool = True,
+    core_settings: dict[str, float] | None = None,
+) -> FloodReport:
+    """One run, baseline then flood; see the module docstring."""
+    settings = dict(core_settings or {})
+    ctx = mp.get_context("spawn")
+    out: Queue[Any] = ctx.Queue()
+    text = mosquitto_acl(_CORE_USER, {_PROVIDER_USER: "echo"}) if acl else None
+    with (
+        MosquittoBroker(acl=text) as user,
+        MosquittoBroker() as backbone,
+        MosquittoBroker() as service,
+    ):
+        as_core = BrokerSettings(url=user.url, username=_CORE_USER)
+        user_core = Core.create("user", as_core, backbone.url, **settings).start(timeout=10)
+        done = ctx.Event()
+        side = ctx.Process(
+            target=_service_side, args=(service.url, backbone.url, done, out), daemon=True
+        )
+        side.start()
+        try:
+            kind, _ = out.get(timeout=30)
+            if kind != "service":
+                raise RuntimeError(f"the service side did not start ({kind})")
+            setup = 6.0
+            start = time.time() + setup
+            flood_start = start + phase
+            end = flood_start + phase
+            users = ctx.Process(
+                target=_users, args=(user.url, participants, hz, start, end, out), daemon=True
+            )
+            flooder = ctx.Process(
+                target=_flooder, args=(user.url, rate, flood_start, end, out), daemon=True
+            )
+            users.start()
+            flooder.start()
+            results: dict[str, Any] = {}
+            deadline = end + _SETTLE + 30.0
+            while len(results) < 3 and time.time() < deadline:
+                try:
+                    kind, value = out.get(timeout=1.0)
+                except Exception:  # queue.Empty
+                    if not users.is_alive() and "users" not in results:
+                        break
+                    continue
+                results[kind] = value
+            users.join(10)
+            flooder.join(10)
+            if "users" not in results:
+                raise RuntimeError("the users' process reported nothing (see its traceback)")
+            samples: list[tuple[float, float | None]] = results["users"]
+            baseline = _figures([s for s in samples if s[0] < flood_start])
+            flood = _figures([s for s in samples if s[0] >= flood_start])
+            sent, achieved = results.get("flooder", (0, 0.0))
+            return FloodReport(
+                baseline=baseline,
+                flood=flood,
+                ratio=flood.p99_ms / baseline.p99_ms if baseline.p99_ms > 0 else math.nan,
+                flood_sent=sent,
+                flood_rate=achieved,
+                core=asdict(user_core.stats),
+                settings={
+                    "participants": participants,
+                    "hz": hz,
+                    "rate": rate,
+                    "phase": phase,
+                    "acl": acl,
+                    "core_rate": user_core.config.rate,
+                    "core_burst": user_core.config.burst,
+                },
+            )
+        finally:
+            done.set()
+            side.join(10)
+            user_core.stop()
+
+
+def format_report(report: FloodReport) -> str:
+    b, f, s = report.baseline, report.flood, report.settings
+    lines = [
+        f"flood bench: {s['participants']} users at {s['hz']:g} Hz, one flooder at "
+        f"{report.flood_rate:,.0f} msg/s ({report.flood_sent:,} sent), Mosquitto "
+        f"{'with' if s['acl'] else 'without'} the shipped ACL, core rate "
+        f"{s['core_rate']:g}/s burst {s['core_burst']:g}, phases of {s['phase']:g} s",
+        f"{'phase':<10}{'sent':>7}{'answered':>10}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}",
+    ]
+    for name, x in (("baseline", b), ("flood", f)):
+        lines.append(
+            f"{name:<10}{x.sent:>7}{x.answered:>10}{x.p50_ms:>9.1f}{x.p99_ms:>9.1f}{x.max_ms:>9.1f}"
+        )
+    lines.append(f"p99 flood / baseline: {report.ratio:.2f} (target <= 2)")
+    c = report.core
+    keys = ("forwarded_in", "rejected_rate", "notices_suppressed", "dropped_overload")
+    lines.append("user core: " + ", ".join(f"{k} {c.get(k, 0):,}" for k in keys))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m ldm.floodbench",
+        description="Other participants' p99 latency before and during one participant's flood.",
+    )
+    parser.add_argument("--participants", type=int, default=4, help="calm users (default 4)")
+    parser.add_argument("--hz", type=float, default=5.0, help="requests/s per user (default 5)")
+    parser.add_argument("--rate", type=float, default=6700.0, help="flood msg/s (default 6700)")
+    parser.add_argument("--phase", type=float, default=10.0, help="seconds per phase (10)")
+    parser.add_argument("--no-acl", action="store_true", help="user broker without the ACL")
+    parser.add_argument("--core-rate", type=float, help="the user core's rate (default: its own)")
+    parser.add_argument("--core-burst", type=float, help="the user core's burst")
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    a = parser.parse_args(argv)
+    core: dict[str, float] = {}
+    if a.core_rate is not None:
+        core["rate"] = a.core_rate
+    if a.core_burst is not None:
+        core["burst"] = a.core_burst
+    report = run_flood_bench(
+        participants=a.participants,
+        hz=a.hz,
+        rate=a.rate,
+        phase=a.phase,
+        acl=not a.no_acl,
+        core_settings=core,
+    )
+    print(json.dumps(asdict(report), indent=1) if a.json else format_report(report))
+    return 0 if report.flood.answered else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

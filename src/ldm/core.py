@@ -29,7 +29,7 @@ import secrets
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import TypeAdapter, ValidationError
 
@@ -100,6 +100,7 @@ class _Session:
     old: list[_Pseudonym] = field(default_factory=list)
     next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
     secret: bytes | None = None  # shared with the participant by the latest grant
+    last_grant: SessionNotice | None = None  # sent again, unchanged, for a duplicate request
 
 
 @dataclass(slots=True)
@@ -121,50 +122,90 @@ class _Bucket:
         return self.tokens + (now - self.stamp) * rate >= burst
 
 
+_Charge = Literal["own", "other", "session"]
+"""Which of a participant's budgets pays for one of its messages (`_Limits`)."""
+
+
+@dataclass(slots=True)
+class _Budget:
+    """Input at ``rate``/``burst`` and the refusal notices that answer it at 10/s."""
+
+    input: _Bucket
+    notices: _Bucket
+
+    @classmethod
+    def new(cls, now: float, burst: float) -> _Budget:
+        return cls(_Bucket(burst, now), _Bucket(_NOTICE_RATE, now))
+
+    def full(self, now: float, rate: float, burst: float) -> bool:
+        return self.input.full(now, rate, burst) and self.notices.full(
+            now, _NOTICE_RATE, _NOTICE_RATE
+        )
+
+
 @dataclass(slots=True)
 class _Limits:
-    """One participant's budgets, each a bucket of ``rate``/``burst`` (input) or 10/s
-    (notices): ``own`` pays for input under one of its sessions' current or in-grace
-    ephemeral keys, ``other`` for all else of this client (session requests, new or
-    unknown keys, unreadable messages); each has its own bucket of refusal notices.
-    Input forged on this client's topics (an open broker) is ``other`` unless it
-    copies a key of the client's, so it cannot use up ``own``."""
+    """One participant client id's budgets, each paying for one kind of its messages:
 
-    own: _Bucket
-    other: _Bucket
-    own_notices: _Bucket
-    other_notices: _Bucket
+    - ``own``: its sessions' input, as far as intake can tell (`_SessionKeys.own`:
+      tagged with the session's secret; for a session without one, under a current or
+      in-grace key of it);
+    - ``session``: its session requests, as far as intake can tell (`request_like`);
+    - ``other``: everything else (input under new or unknown keys, untagged or
+      unreadable input, malformed session requests, other topics).
+
+    On a broker without ACL, input forged on the client's topics is ``other`` (it lacks
+    the session's tag, or is not a well-formed session request), so it uses up neither
+    the sessions' budget nor the one for session requests. Well-formed session requests
+    forged in its name use up ``session``: nothing tells them from its own.
+    """
+
+    own: _Budget
+    other: _Budget
+    session: _Budget
 
     @classmethod
     def new(cls, now: float, burst: float) -> _Limits:
-        return cls(
-            _Bucket(burst, now),
-            _Bucket(burst, now),
-            _Bucket(_NOTICE_RATE, now),
-            _Bucket(_NOTICE_RATE, now),
-        )
+        return cls(_Budget.new(now, burst), _Budget.new(now, burst), _Budget.new(now, burst))
+
+    def budget(self, charge: _Charge) -> _Budget:
+        return self.own if charge == "own" else self.other if charge == "other" else self.session
 
     def full(self, now: float, rate: float, burst: float) -> bool:
-        """All four buckets are full: the same as having none."""
-        return (
-            self.own.full(now, rate, burst)
-            and self.other.full(now, rate, burst)
-            and self.own_notices.full(now, _NOTICE_RATE, _NOTICE_RATE)
-            and self.other_notices.full(now, _NOTICE_RATE, _NOTICE_RATE)
-        )
+        """Every bucket is full: the same as having none."""
+        return all(b.full(now, rate, burst) for b in (self.own, self.other, self.session))
 
 
 _UP = "ldm/p/"  # every participant topic the core subscribes to is ldm/p/{client}/up/...
 _K = b'"k":"'
 _K_LEN = 44  # base64 of a 32-byte X25519 key
+_TAG_CHECK_MAX = 4096  # bytes: larger input is not checked at intake (charged ``other``)
+
+
+@dataclass(frozen=True, slots=True)
+class _SessionKeys:
+    """What intake knows of one session: its ephemeral keys with the end of their grace
+    (inf: current), and the secret its input is tagged with (None: none yet)."""
+
+    keys: tuple[tuple[bytes, float], ...]
+    secret: bytes | None
+
+    def own(self, payload: bytes, now: float) -> bool:
+        """Whether `payload` is this session's input: tagged with its secret (any key:
+        a new key after a rotation is the session's too) or, without a secret, under
+        one of its keys. A JSON parse of at most 4 KiB and an HMAC, or a find."""
+        if self.secret is not None:
+            return tagged(self.secret, payload)
+        k = envelope_key(payload)
+        return k is not None and any(key == k and until > now for key, until in self.keys)
 
 
 def envelope_key(payload: bytes) -> bytes | None:
     """The ``k`` of an input envelope as `Envelope.encode` writes it, found without
     parsing (``"k":"`` within the first 256 bytes, then 44 characters and ``"``).
 
-    Only to choose the bucket that pays for a message: a payload that tricks it gains
-    nothing a copied key would not (see `_Limits`); the message is parsed properly later.
+    Only to choose the budget that pays for a message of a session without a secret
+    (the message is parsed properly later); anyone who copies the key gets the same.
     """
     at = payload.find(_K, 0, 256)
     if at < 0:
@@ -174,13 +215,48 @@ def envelope_key(payload: bytes) -> bytes | None:
     return payload[start:end] if payload[end : end + 1] == b'"' else None
 
 
+def request_like(payload: bytes) -> bool:
+    """Whether a payload of at most 1 KiB is a JSON object with a string ``c`` and
+    ``service`` and a number ``t``: the shape of a session request, to charge it to the
+    client's ``session`` budget (it is validated properly later)."""
+    if len(payload) > 1024:
+        return False
+    try:
+        req = json.loads(payload)
+    except (ValueError, RecursionError):
+        return False
+    return (
+        isinstance(req, dict)
+        and isinstance(req.get("c"), str)
+        and isinstance(req.get("service"), str)
+        and isinstance(req.get("t"), (int, float))
+    )
+
+
+def tagged(secret: bytes, payload: bytes) -> bool:
+    """Whether an input envelope of at most 4 KiB carries a valid tag ``m`` of the
+    session's secret (`ldm.crypto.input_tag`); False for anything else."""
+    if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:
+        return False
+    try:
+        env = json.loads(payload)
+    except (ValueError, RecursionError):
+        return False
+    if not isinstance(env, dict):
+        return False
+    c, t, k, d, m = (env.get(name) for name in ("c", "t", "k", "d", "m"))
+    if not (isinstance(t, float) and all(isinstance(x, str) for x in (c, k, d, m))):
+        return False
+    return hmac.compare_digest(str(m), input_tag(secret, str(c), t, str(k), str(d)))
+
+
 @dataclass(frozen=True, slots=True)
 class _Admitted(Message):
     """A participant message taken at intake (`Core.sink`), with what intake decided:
-    ``own``: charged to the bucket of its session's key; ``refused``: over the rate,
-    only its ``rejected`` notice is left to send (the notice bucket already paid)."""
+    ``charge``: the budget that paid for it; ``refused``: over the rate, only its
+    ``rejected`` notice is left to send (the notice bucket already paid)."""
 
-    own: bool = False
+    charge: _Charge = "other"
     refused: bool = False
 
 
@@ -219,8 +295,11 @@ class CoreStats:
     """Announcements not signed by a pinned or endorsed identity (with trust set)."""
     repaired_list: int = 0
     """Service lists on the cluster that were not this core's own, replaced by it."""
-    answered_unauthentic: int = 0
-    """Input without the tag of its session's secret (answered ``nosession``)."""
+    dropped_unauthentic: int = 0
+    """Input without the tag of its session's secret: forged on the participant's topics
+    (a broker without ACL). Not answered: an answer would spend the participant's
+    notice budget; a participant whose secret a forged request replaced opens its
+    session again when its request times out."""
     rotations: int = 0
     sessions_expired: int = 0
     dropped_retained: int = 0
@@ -241,10 +320,10 @@ class Core(Worker[Event]):
         """What paho's threads share with the worker: ``_limits``, ``_keys``, and the
         counters admission writes (rejected_rate, notices_suppressed, dropped_overload,
         dropped_retained)."""
-        self._keys: dict[tuple[str, str], tuple[tuple[bytes, float], ...]] = {}
-        """(client, service) -> the session's keys with the end of their grace; the
-        worker writes it, intake reads it to charge input to the right bucket."""
-        self._own = False  # worker: the message being handled was charged to ``own``
+        self._keys: dict[tuple[str, str], _SessionKeys] = {}
+        """(client, service) -> what intake needs to know of the session, to charge its
+        input to the right bucket; the worker writes it."""
+        self._charge: _Charge = "other"  # worker: the budget that paid for this message
         self._next_sweep = time.time() + config.retain_sweep
         self.config = config
         self.name = config.name
@@ -360,13 +439,14 @@ class Core(Worker[Event]):
             self.stats.dropped_overload += 1
 
     def _admit(self, msg: Message) -> None:
-        """Intake of ``ldm/p/{client}/up/...`` on paho's thread, without parsing JSON.
+        """Intake of ``ldm/p/{client}/up/...`` on paho's thread, before any queue.
 
         Retained (old: cleared on the broker) and empty messages are dropped. The rest
-        is charged to the client's ``own`` bucket if its envelope key is one of that
-        session's keys, else to ``other`` (`_Limits`); over the rate it is refused here
-        (its ``rejected`` notice, if the notice bucket pays, is queued in the client's
-        lane), else queued in the client's lane of the fair queue.
+        is charged to one of the client's budgets (`_Limits`): what looks like a session
+        request to ``session``, its session's input (`_SessionKeys.own`) to ``own``,
+        anything else to ``other``. Over the rate it is refused here (its ``rejected``
+        notice, if the notice bucket pays, is queued in the client's lane), else queued
+        in the client's lane of the fair queue.
         """
         if msg.retain or not msg.payload:
             if msg.payload:  # an empty retained publish deletes it on the broker
@@ -376,33 +456,38 @@ class Core(Worker[Event]):
             return
         levels = msg.topic.split("/", 6)  # ldm, p, client, up, kind, service, (more)
         client = levels[2]
-        service = levels[5] if len(levels) == 6 and levels[4] == "data" else ""
+        kind = levels[4] if len(levels) > 4 else ""
+        service = levels[5] if len(levels) == 6 and kind == "data" else ""
         cfg = self.config
         now = time.time()
+        charge: _Charge = "other"
+        if kind == "session" and len(levels) == 5 and request_like(msg.payload):
+            charge = "session"
+        elif service:
+            with self._guard:
+                known = self._keys.get((client, service))
+            if known is not None and known.own(msg.payload, now):  # outside the lock
+                charge = "own"
         notice = False
         with self._guard:
-            keys = self._keys.get((client, service)) if service else None
-            own = False
-            if keys:
-                k = envelope_key(msg.payload)
-                own = k is not None and any(key == k and until > now for key, until in keys)
             limits = self._limits.get(client)
             if limits is None:
                 limits = self._limits[client] = _Limits.new(now, cfg.burst)
-            admitted = (limits.own if own else limits.other).take(now, cfg.rate, cfg.burst)
+            budget = limits.budget(charge)
+            admitted = budget.input.take(now, cfg.rate, cfg.burst)
             if not admitted:
                 self.stats.rejected_rate += 1
-                notice = len(levels) >= 5 and self._take_notice(limits, own, now)
+                notice = len(levels) >= 5 and self._take_notice(budget, now)
         if admitted or notice:
-            item = _Admitted(msg.topic, msg.payload, msg.qos, False, msg.source, own, not admitted)
+            item = _Admitted(
+                msg.topic, msg.payload, msg.qos, False, msg.source, charge, not admitted
+            )
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
 
-    def _take_notice(self, limits: _Limits, own: bool, now: float) -> bool:
-        """A token from the notice bucket that pays for this message (hold ``_guard``)."""
-        if (limits.own_notices if own else limits.other_notices).take(
-            now, _NOTICE_RATE, _NOTICE_RATE
-        ):
+    def _take_notice(self, budget: _Budget, now: float) -> bool:
+        """A token from the budget's notice bucket (hold ``_guard``)."""
+        if budget.notices.take(now, _NOTICE_RATE, _NOTICE_RATE):
             return True
         self.stats.notices_suppressed += 1
         return False
@@ -517,7 +602,9 @@ class Core(Worker[Event]):
         is_data = levels[4] == "data" and len(levels) == 6
         service = levels[5] if is_data else ""
         admitted = msg if isinstance(msg, _Admitted) else None
-        self._own = admitted is not None and admitted.own
+        self._charge = (
+            admitted.charge if admitted is not None else "session" if is_session else "other"
+        )
         try:
             if admitted is not None and admitted.refused:
                 cfg = self.config
@@ -528,7 +615,7 @@ class Core(Worker[Event]):
             else:
                 self._participant_message(msg, client, service, is_session, is_data)
         finally:
-            self._own = False
+            self._charge = "other"
 
     def _participant_message(
         self, msg: Message, client: str, service: str, is_session: bool, is_data: bool
@@ -555,7 +642,9 @@ class Core(Worker[Event]):
             return
         try:
             if is_session:
-                self._session_request(client, SessionRequest.model_validate_json(msg.payload))
+                request = SessionRequest.model_validate_json(msg.payload)
+                self._session_request(client, request)
+                self._share_keys(client, request.service)  # a grant may bring a new secret
             else:
                 self._participant_input(
                     client, service, Envelope.model_validate_json(msg.payload), now
@@ -568,15 +657,18 @@ class Core(Worker[Event]):
             self._reject(client, service, "invalid", error, payload=msg.payload)
 
     def _share_keys(self, client: str, service: str) -> None:
-        """Tell intake the session's keys (current, and old ones until their grace ends)."""
+        """Tell intake the session's keys (current, and old ones until their grace ends)
+        and its secret, after each message that may have changed them."""
         session = self._sessions.get((client, service))
-        keys: tuple[tuple[bytes, float], ...] = ()
-        if session is not None and session.current is not None:
-            keys = tuple((p.key.encode(), p.until) for p in (session.current, *session.old))
-        if self._keys.get((client, service), ()) != keys:  # only the worker writes it
+        known: _SessionKeys | None = None
+        if session is not None and (session.current is not None or session.secret is not None):
+            current = [] if session.current is None else [session.current]
+            keys = tuple((p.key.encode(), p.until) for p in (*current, *session.old))
+            known = _SessionKeys(keys, session.secret)
+        if self._keys.get((client, service)) != known:  # only the worker writes it
             with self._guard:
-                if keys:
-                    self._keys[(client, service)] = keys
+                if known is not None:
+                    self._keys[(client, service)] = known
                 else:
                     self._keys.pop((client, service), None)
 
@@ -611,12 +703,14 @@ class Core(Worker[Event]):
             self._notify(client, notice)
 
     def _admit_notice(self, client: str) -> bool:
-        """Take a token from the client's notice bucket (10/s) that pays for the message
-        being handled (``own`` or ``other``, as intake charged it): False when empty.
-        A client intake never saw (no buckets) is answered."""
+        """Take a token from the notice bucket (10/s) of the budget that paid for the
+        message being handled (`_Limits`): False when it is empty. A client intake never
+        saw (no buckets) is answered."""
         with self._guard:
             limits = self._limits.get(client)
-            return limits is None or self._take_notice(limits, self._own, time.time())
+            if limits is None:
+                return True
+            return self._take_notice(limits.budget(self._charge), time.time())
 
     # --- services ---------------------------------------------------------------------
 
@@ -779,6 +873,11 @@ class Core(Worker[Event]):
             session = _Session(client, req.service, now)
             self._sessions[(client, req.service)] = session
         session.last_seen = now
+        last = session.last_grant
+        if last is not None and last.c == req.c:  # a duplicate (QoS 1): the same answer
+            self.stats.granted += 1
+            self._notify(client, last)
+            return
         cfg = self.config
         auth_key = None
         if req.k is not None:  # the latest grant's secret is the session's
@@ -799,7 +898,8 @@ class Core(Worker[Event]):
             auth_key=auth_key,
         )
         self.stats.granted += 1
-        self._notify(client, SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant))
+        session.last_grant = SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant)
+        self._notify(client, session.last_grant)
 
     def _stale(self, env: Envelope) -> bool:
         if time.time() - env.t > self.config.max_age:
@@ -827,10 +927,7 @@ class Core(Worker[Event]):
             env.m is None
             or not hmac.compare_digest(env.m, input_tag(session.secret, env.c, env.t, env.k, env.d))
         ):
-            # Forged (a broker without ACL), or sent under a secret a newer grant
-            # replaced: the participant asks for the session again.
-            self.stats.answered_unauthentic += 1
-            self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
+            self.stats.dropped_unauthentic += 1
             return
         svc = self._services.get(service)
         if svc is None:

@@ -254,6 +254,8 @@ class Session:
             old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
             for c, _ in old:
                 del self._pending[c]
+        if old:  # the core may have lost or replaced the session without a word: ask again
+            self._participant._reopen(self)
         for _, p in old:
             why = "the input or its reply was lost or dropped as stale"
             if disconnects != p.disconnects:

@@ -238,7 +238,7 @@ def test_payload_on_the_wire_is_ciphertext(deployment: Deployment) -> None:
         assert wait_for(lambda: len(data()) == 2, 3)
         for m in data():
             assert PLAINTEXT.encode() not in m.payload
-            assert set(json.loads(m.payload)) <= {"c", "t", "k", "d"}
+            assert set(json.loads(m.payload)) <= {"c", "t", "k", "d", "m"}  # m: the tag
     finally:
         spy.stop()
 

@@ -153,16 +153,17 @@ class CoreConfig(_Settings):
 
     Protection against misbehaving participants (each refusal is answered with a
     ``rejected`` notice on the participant's session topic, at most 10 notices per
-    second and client, and counted in `CoreStats`): a token bucket per participant
+    second and bucket, and counted in `CoreStats`): a token bucket per participant
     client id admits ``rate`` messages per second on average and ``burst`` at once. It
     is applied as messages arrive, on the network thread, before they share a queue
     with anyone; what it admits waits in the client's own queue, and the queues are
     served round-robin (`ldm.intake`), so a flooding client delays each other client
-    by at most one message per round. Input under one of the client's session keys and
-    everything else of that client (session requests, new keys, unreadable input) have
-    a bucket each, so on a broker without ACLs input forged on a client's topics does
-    not use up its sessions' budget unless it copies a session's key (the key is
-    visible in every input). Payloads over ``max_payload`` bytes are refused before
+    by at most one message per round. A client has three such buckets: for its
+    sessions' input (tagged with the session's secret), for well-formed session
+    requests, and for everything else, each with its own 10 notices per second; so on
+    a broker without ACLs, input forged on a client's topics uses up neither its
+    sessions' budget nor its session requests' (forged well-formed session requests do
+    use up the latter). Payloads over ``max_payload`` bytes are refused before
     they are parsed; input stamped more than ``max_clock_skew`` seconds in the future
     is refused (it would escape the ``max_age`` check); a session's new ephemeral key
     sooner than ``rekey_interval`` after the last is refused. Stale input is dropped and
@@ -185,14 +186,21 @@ class CoreConfig(_Settings):
     service_ttl: float = Field(default=30.0, gt=0)
     max_age: float = Field(default=2.0, gt=0)
     data_qos: int = Field(default=0, ge=0, le=2)
-    rate: float = Field(default=50.0, gt=0)
-    """Messages per second and participant (average). 50: five times a 10 Hz GNSS
-    receiver, the fastest positioning client, or a 5 Hz one replayed at 10x, with room
-    for its session requests; every admitted message may reach the service, so this is
-    also what one client can make a service do. Raise it for chattier services."""
-    burst: float = Field(default=100.0, ge=1)
-    """Messages a participant may send at once: 10 s of a 10 Hz receiver, enough for
-    the backlog it re-sends after a reconnect."""
+    rate: float = Field(default=100.0, gt=0)
+    """Messages per second per participant, on average. Every message admitted may
+    reach the service, so this is also the most work one client can give a service.
+    The default, 100, is ten times the fastest positioning receiver (10 Hz), so that
+    simulated participants replayed up to 100x real time still fit (the Hamburg
+    users, at 1 Hz: ``laas demo`` at 10x, the privacy runs of ``laas bench`` at 20x and
+    in the tests at 50x); a deployment of real devices can set 20. Raise it for a
+    chattier service."""
+    burst: float = Field(default=20.0, ge=1)
+    """Messages a participant may send at once. What a client sends in a burst reaches
+    the service at once and, in the queues after the user core (the service core's,
+    the provider's), waits ahead of everyone else's input: each message of a burst
+    adds about half a millisecond there, so a large burst spoils other users' p99
+    under a flood. The default, 20, is ``max_age`` (2 s) of a 10 Hz receiver, what
+    it may send at once after a reconnect: anything older is stale anyway."""
     max_payload: int = Field(default=64 * 1024, ge=256)
     max_clock_skew: float = Field(default=30.0, gt=0)
     max_queue: int = Field(default=100_000, ge=1)

@@ -121,6 +121,10 @@ class _Bucket:
     def full(self, now: float, rate: float, burst: float) -> bool:
         return self.tokens + (now - self.stamp) * rate >= burst
 
+    def ready(self, now: float, rate: float, burst: float) -> bool:
+        """Whether `take` would succeed now; takes nothing."""
+        return min(burst, self.tokens + (now - self.stamp) * rate) >= 1.0
+
 
 _Charge = Literal["own", "other", "session"]
 """Which of a participant's budgets pays for one of its messages (`_Limits`)."""
@@ -177,6 +181,23 @@ class _Limits:
 
 
 _UP = "ldm/p/"  # every participant topic the core subscribes to is ldm/p/{client}/up/...
+_PSEUDONYM = "~"  # (_PSEUDONYM, pseudonym): a pseudonym's lane; a client's is its id
+
+
+def pseudonym_of(topic: str) -> str | None:
+    """The pseudonym of a data topic a core receives (``ldm/svc/S/out/P``,
+    ``ldm/bb/in/C/S/U/P``, ``ldm/bb/out/C/S/P``), None for any other topic."""
+    levels = topic.split("/")
+    n = len(levels)
+    if n == 5 and levels[1] == "svc" and levels[3] == "out":
+        return levels[4]
+    if levels[1:2] == ["bb"] and (
+        (n == 7 and levels[2] == "in") or (n == 6 and levels[2] == "out")
+    ):
+        return levels[-1]
+    return None
+
+
 _K = b'"k":"'
 _K_LEN = 44  # base64 of a 32-byte X25519 key
 _TAG_CHECK_MAX = 4096  # bytes: larger input is not checked at intake (charged ``other``)
@@ -190,14 +211,21 @@ class _SessionKeys:
     keys: tuple[tuple[bytes, float], ...]
     secret: bytes | None
 
-    def own(self, payload: bytes, now: float) -> bool:
-        """Whether `payload` is this session's input: tagged with its secret (any key:
-        a new key after a rotation is the session's too) or, without a secret, under
-        one of its keys. A JSON parse of at most 4 KiB and an HMAC, or a find."""
+    def claims(self, payload: bytes, now: float) -> bool:
+        """Whether `payload` may be this session's input (cheap: a find or two): it has
+        a tag (a session with a secret) or one of the session's keys (one without)."""
         if self.secret is not None:
-            return tagged(self.secret, payload)
+            return b'"m"' in payload
         k = envelope_key(payload)
         return k is not None and any(key == k and until > now for key, until in self.keys)
+
+    def own(self, payload: bytes, now: float) -> bool:
+        """Whether `payload` is this session's input: tagged with its secret (under any
+        key: a new key after a rotation is the session's too) or, without a secret,
+        under one of its keys. A JSON parse of at most 4 KiB and an HMAC, or a find."""
+        if self.secret is not None:
+            return tagged(self.secret, payload)
+        return self.claims(payload, now)
 
 
 def envelope_key(payload: bytes) -> bytes | None:
@@ -216,21 +244,10 @@ def envelope_key(payload: bytes) -> bytes | None:
 
 
 def request_like(payload: bytes) -> bool:
-    """Whether a payload of at most 1 KiB is a JSON object with a string ``c`` and
-    ``service`` and a number ``t``: the shape of a session request, to charge it to the
-    client's ``session`` budget (it is validated properly later)."""
-    if len(payload) > 1024:
-        return False
-    try:
-        req = json.loads(payload)
-    except (ValueError, RecursionError):
-        return False
-    return (
-        isinstance(req, dict)
-        and isinstance(req.get("c"), str)
-        and isinstance(req.get("service"), str)
-        and isinstance(req.get("t"), (int, float))
-    )
+    """Whether a payload may be a session request (at most 1 KiB, naming a
+    ``"service"``), to charge it to the client's ``session`` budget; cheap, and
+    validated properly later."""
+    return len(payload) <= 1024 and b'"service"' in payload
 
 
 def tagged(secret: bytes, payload: bytes) -> bool:
@@ -314,7 +331,8 @@ class Core(Worker[Event]):
 
     def __init__(self, config: CoreConfig) -> None:
         self._intake: FairQueue[object] = FairQueue(config.max_queue)
-        """Participant messages wait per client id, served round-robin; all else first."""
+        """Participant messages wait per client id, data per pseudonym, served
+        round-robin; control first (`sink`)."""
         super().__init__(f"ldm-core-{config.name}", config.tick, inbox=self._intake)
         self._guard = threading.Lock()
         """What paho's threads share with the worker: ``_limits``, ``_keys``, and the
@@ -425,14 +443,21 @@ class Core(Worker[Event]):
     # --- intake (paho's threads) ---------------------------------------------------------
 
     def sink(self, item: Event) -> None:
-        """Both transports' sink. A participant's message is admitted here (`_admit`),
-        before it shares a queue with anyone; everything else is queued to be handled
-        first (`FairQueue`'s urgent lane: providers' replies, announcements and the
-        backbone come from the LDM's own accounts and finish work already admitted)."""
-        if isinstance(item, Message) and item.source == _CLUSTER and item.topic.startswith(_UP):
+        """Both transports' sink (paho's threads). A participant's message is admitted
+        here (`_admit`), before it shares a queue with anyone, and waits in its client's
+        lane of the fair queue; data under a pseudonym (a provider's reply, input and
+        replies over the backbone) waits in that pseudonym's lane; control (service
+        announcements and lists, core statuses, reconnects) is handled first."""
+        if not isinstance(item, Message):
+            super().sink(item)
+        elif item.source == _CLUSTER and item.topic.startswith(_UP):
             self._admit(item)
         else:
-            super().sink(item)
+            pseudonym = pseudonym_of(item.topic)
+            if pseudonym is None:
+                super().sink(item)
+            elif not self._intake.offer(item, (_PSEUDONYM, pseudonym)):
+                self.overflowed()
 
     def overflowed(self) -> None:
         with self._guard:
@@ -446,7 +471,9 @@ class Core(Worker[Event]):
         request to ``session``, its session's input (`_SessionKeys.own`) to ``own``,
         anything else to ``other``. Over the rate it is refused here (its ``rejected``
         notice, if the notice bucket pays, is queued in the client's lane), else queued
-        in the client's lane of the fair queue.
+        in the client's lane of the fair queue. Costs a few finds per message, and a
+        JSON parse and an HMAC only for input that claims to be its session's while the
+        session's budget can still pay for it.
         """
         if msg.retain or not msg.payload:
             if msg.payload:  # an empty retained publish deletes it on the broker
@@ -461,29 +488,43 @@ class Core(Worker[Event]):
         cfg = self.config
         now = time.time()
         charge: _Charge = "other"
+        verified = True  # whether `charge` is known to be right
         if kind == "session" and len(levels) == 5 and request_like(msg.payload):
             charge = "session"
         elif service:
             with self._guard:
                 known = self._keys.get((client, service))
-            if known is not None and known.own(msg.payload, now):  # outside the lock
-                charge = "own"
+            if known is not None and known.claims(msg.payload, now):
+                # The tag is checked (outside the lock) only while the session's budget
+                # could pay: a participant over its rate costs no parsing. Unchecked,
+                # it is refused, and the refusal is answered from ``other``.
+                with self._guard:
+                    verified = self._limits_of(client, now).own.input.ready(
+                        now, cfg.rate, cfg.burst
+                    )
+                charge = "own" if not verified or known.own(msg.payload, now) else "other"
         notice = False
         with self._guard:
-            limits = self._limits.get(client)
-            if limits is None:
-                limits = self._limits[client] = _Limits.new(now, cfg.burst)
+            limits = self._limits_of(client, now)
             budget = limits.budget(charge)
-            admitted = budget.input.take(now, cfg.rate, cfg.burst)
+            admitted = verified and budget.input.take(now, cfg.rate, cfg.burst)
             if not admitted:
                 self.stats.rejected_rate += 1
-                notice = len(levels) >= 5 and self._take_notice(budget, now)
+                payer = budget if verified else limits.other
+                notice = len(levels) >= 5 and self._take_notice(payer, now)
         if admitted or notice:
             item = _Admitted(
                 msg.topic, msg.payload, msg.qos, False, msg.source, charge, not admitted
             )
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
+
+    def _limits_of(self, client: str, now: float) -> _Limits:
+        """The client's budgets, new (full) if it has none (hold ``_guard``)."""
+        limits = self._limits.get(client)
+        if limits is None:
+            limits = self._limits[client] = _Limits.new(now, self.config.burst)
+        return limits
 
     def _take_notice(self, budget: _Budget, now: float) -> bool:
         """A token from the budget's notice bucket (hold ``_guard``)."""

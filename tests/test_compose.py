@@ -34,6 +34,7 @@ import pytest
 import yaml  # type: ignore[import-untyped]
 
 from ldm.brokers import find_mosquitto, free_port
+from ldm.config import CoreConfig
 from ldm.pytest_plugin import need_mosquitto
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -309,8 +310,8 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
             == env["LDM_BACKBONE_PASSWORD"]
             == SECRETS[f"LDM_CORE_{name.upper()}_PASSWORD"]
         )
-        assert command[command.index("--rate") + 1] == "200"
-        assert command[command.index("--burst") + 1] == "400"
+        assert command[command.index("--rate") + 1] == _default("rate")
+        assert command[command.index("--burst") + 1] == _default("burst")
     assert environment(services["worker"])["LAAS_USERNAME"] == "laas-worker"
     assert environment(services["simulator"])["LAAS_PASSWORD"] == "p"
     # no password on a command line, except the broker health check's (laas-health)
@@ -373,6 +374,11 @@ def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
     assert sorted(keys.values()) == sorted(f"{k}.key" for k in KEY_FILES)
     # the private keys are never committed
     assert "/deploy/security/keys/" in (ROOT / ".gitignore").read_text().split()
+
+
+def _default(field: str) -> str:
+    """A CoreConfig default as the compose file spells it (a whole number)."""
+    return f"{CoreConfig.model_fields[field].default:g}"
 
 
 def test_cores_and_worker_match_the_topology() -> None:

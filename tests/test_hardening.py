@@ -469,10 +469,12 @@ def test_core_sessions_and_provider_ciphers_stay_bounded() -> None:
     spec = ServiceSpec(name="echo")
     key = KeyPair()
     provider = Provider.create("mqtt://127.0.0.1:9", spec, EchoService(), key=key, cipher_cache=100)
-    core = Core.create("edge", "mqtt://127.0.0.1:9", idle_timeout=1.0, rate=1e9, burst=1e9)
+    core = Core.create(
+        "edge", "mqtt://127.0.0.1:9", idle_timeout=1.0, rate=1e9, burst=1e9, service_ttl=600
+    )
     try:
         description = ServiceDescription(**spec.model_dump(), public_key=key.public)
-        ann = Announcement(service=description, t=time.time() + 600).model_dump_json().encode()
+        ann = Announcement(service=description, t=time.time()).model_dump_json().encode()
         core.handle(Message("ldm/svc/echo/announce", ann, 1, False, "cluster"))
         for i in range(10_000):
             req = f'{{"c":"c{i}","service":"echo","t":{time.time()}}}'.encode()

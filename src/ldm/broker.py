@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from typing import IO, Any
 
 from ldm.errors import ConnectError
@@ -144,6 +145,17 @@ class EmbeddedBroker:
         self.stop()
 
 
+class _SnapshotDict(dict[str, Any]):
+    """A dict whose iteration walks a copy of its keys and items, so a loop that awaits
+    may see it change."""
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(super().__iter__()))
+
+    def items(self) -> Any:
+        return list(super().items())
+
+
 def _broker_class() -> Any:
     """amqtt's broker, keeping its client connections so that a stop can drop them."""
     from amqtt.broker import Broker  # the one amqtt import
@@ -152,6 +164,10 @@ def _broker_class() -> Any:
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self.connections: set[asyncio.BaseTransport] = set()
+            # amqtt 0.12 iterates its subscription table with awaits inside the loop
+            # (a connect's retained re-send, a broadcast), so a subscribe in between
+            # raised "dictionary changed size during iteration": iterate a copy.
+            self._subscriptions = _SnapshotDict(self._subscriptions)  # type: ignore[has-type]
 
         async def stream_connected(
             self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str

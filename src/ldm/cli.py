@@ -71,6 +71,7 @@ def _parser() -> argparse.ArgumentParser:
         ("--rate", "rate"),
         ("--burst", "burst"),
         ("--max-clock-skew", "max_clock_skew"),
+        ("--retain-sweep", "retain_sweep"),
     ]:
         default = CoreConfig.model_fields[field].default
         unit = "messages/s" if field == "rate" else "messages" if field == "burst" else "seconds"
@@ -203,6 +204,7 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
         rate=args.rate,
         burst=args.burst,
         max_clock_skew=args.max_clock_skew,
+        retain_sweep=args.retain_sweep,
         max_payload=args.max_payload,
         identity_file=args.identity,
         service_keys=pins(args.trust_service),

@@ -6,18 +6,27 @@ backbone broker (every core connects there). It
 - learns local providers' announcements, forwards them to the backbone and learns
   every other core's; keeps the cluster's service list retained on ``ldm/services``;
   drops services on withdrawal, on their core's last will, or after ``service_ttl``;
+  with ``service_keys``/``anchors`` it takes only announcements and withdrawals signed
+  by a trusted identity; it signs its service list and puts it back if it is changed;
 - grants participant sessions and gives each a random pseudonym, bound to the
   participant's current ephemeral key; a new key gets a new pseudonym (rotation),
   the old one is honoured for ``grace`` seconds; idle sessions are dropped;
 - routes ciphertext: participant input leaves the user cluster under the pseudonym
   only; replies come back by pseudonym and are mapped to the participant here;
-- guards the user cluster: per-participant token bucket (``rate``, ``burst``), payload
-  size limit, clock-skew check, at most one new key per ``rekey_interval``; every
-  refusal of a participant's message is counted and answered on its session topic (a
-  ``rejected``, ``refused`` or ``nosession`` notice, within 10 notices per second),
-  and touches no other participant's state. Stale input is counted and dropped.
+- signs every notice to a participant (its identity key), and shares a secret with
+  each granted session, with which the participant tags its input: untagged input is
+  dropped before it can change a session's key;
+- guards the user cluster: a participant's messages are admitted on paho's thread
+  against the client's budgets (``rate``, ``burst``: one for its sessions' tagged
+  input, one for session requests, one for the rest), then wait in the client's own
+  lane of a round-robin queue; payload size limit, clock-skew check, at most one new
+  key per ``rekey_interval``; every refusal is counted and answered on its session
+  topic (a ``rejected``, ``refused`` or ``nosession`` notice, within 10 notices per
+  second and budget), and touches no other participant's state. Stale input is
+  counted and dropped; retained participant messages are cleared.
 
-All state lives on the core's worker thread; paho's threads only enqueue events.
+Session state lives on the core's worker thread; what admission on paho's threads
+shares with it (budgets, session keys, recent correlation ids) is under one lock.
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import logging
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -151,9 +161,9 @@ class _Budget:
 class _Limits:
     """One participant client id's budgets, each paying for one kind of its messages:
 
-    - ``own``: its sessions' input, as far as intake can tell (`_SessionKeys.own`:
-      tagged with the session's secret; for a session without one, under a current or
-      in-grace key of it);
+    - ``own``: its sessions' input, as far as intake can tell (`Core._owned`: fresh
+      and tagged with the session's secret, not a replay; for a session without a
+      secret, under a current or in-grace key of it);
     - ``session``: its session requests, as far as intake can tell (`request_like`);
     - ``other``: everything else (input under new or unknown keys, untagged or
       unreadable input, malformed session requests, other topics).
@@ -219,14 +229,6 @@ class _SessionKeys:
         k = envelope_key(payload)
         return k is not None and any(key == k and until > now for key, until in self.keys)
 
-    def own(self, payload: bytes, now: float) -> bool:
-        """Whether `payload` is this session's input: tagged with its secret (under any
-        key: a new key after a rotation is the session's too) or, without a secret,
-        under one of its keys. A JSON parse of at most 4 KiB and an HMAC, or a find."""
-        if self.secret is not None:
-            return tagged(self.secret, payload)
-        return self.claims(payload, now)
-
 
 def envelope_key(payload: bytes) -> bytes | None:
     """The ``k`` of an input envelope as `Envelope.encode` writes it, found without
@@ -250,21 +252,24 @@ def request_like(payload: bytes) -> bool:
     return len(payload) <= 1024 and b'"service"' in payload
 
 
-def tagged(secret: bytes, payload: bytes) -> bool:
-    """Whether an input envelope of at most 4 KiB carries a valid tag ``m`` of the
-    session's secret (`ldm.crypto.input_tag`); False for anything else."""
+def tagged(secret: bytes, payload: bytes) -> tuple[str, float] | None:
+    """The correlation id and time of an input envelope of at most 4 KiB that carries a
+    valid tag ``m`` of the session's secret (`ldm.crypto.input_tag`); None for
+    anything else."""
     if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:
-        return False
+        return None
     try:
         env = json.loads(payload)
     except (ValueError, RecursionError):
-        return False
+        return None
     if not isinstance(env, dict):
-        return False
+        return None
     c, t, k, d, m = (env.get(name) for name in ("c", "t", "k", "d", "m"))
     if not (isinstance(t, float) and all(isinstance(x, str) for x in (c, k, d, m))):
-        return False
-    return hmac.compare_digest(str(m), input_tag(secret, str(c), t, str(k), str(d)))
+        return None
+    if not hmac.compare_digest(str(m), input_tag(secret, str(c), t, str(k), str(d))):
+        return None
+    return str(c), t
 
 
 @dataclass(frozen=True, slots=True)
@@ -342,6 +347,9 @@ class Core(Worker[Event]):
         """(client, service) -> what intake needs to know of the session, to charge its
         input to the right bucket; the worker writes it."""
         self._charge: _Charge = "other"  # worker: the budget that paid for this message
+        self._recent: OrderedDict[tuple[str, str, str], float] = OrderedDict()
+        """(client, service, c) of input charged to its session in the last ``max_age``,
+        oldest first: a replay of one is not the session's (intake, under ``_guard``)."""
         self._next_sweep = time.time() + config.retain_sweep
         self.config = config
         self.name = config.name
@@ -468,7 +476,7 @@ class Core(Worker[Event]):
 
         Retained (old: cleared on the broker) and empty messages are dropped. The rest
         is charged to one of the client's budgets (`_Limits`): what looks like a session
-        request to ``session``, its session's input (`_SessionKeys.own`) to ``own``,
+        request to ``session``, its session's input (`_owned`) to ``own``,
         anything else to ``other``. Over the rate it is refused here (its ``rejected``
         notice, if the notice bucket pays, is queued in the client's lane), else queued
         in the client's lane of the fair queue. Costs a few finds per message, and a
@@ -502,7 +510,8 @@ class Core(Worker[Event]):
                     verified = self._limits_of(client, now).own.input.ready(
                         now, cfg.rate, cfg.burst
                     )
-                charge = "own" if not verified or known.own(msg.payload, now) else "other"
+                own = not verified or self._owned(known, client, service, msg.payload, now)
+                charge = "own" if own else "other"
         notice = False
         with self._guard:
             limits = self._limits_of(client, now)
@@ -518,6 +527,32 @@ class Core(Worker[Event]):
             )
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
+
+    def _owned(
+        self, known: _SessionKeys, client: str, service: str, payload: bytes, now: float
+    ) -> bool:
+        """Whether `payload` is its session's input, and new: tagged with the session's
+        secret (under any key: a new key after a rotation is the session's too), fresh
+        (``max_age``), and not a copy of one taken in the last ``max_age`` (an
+        eavesdropper's replay on a broker without ACL). A session without a secret has
+        nothing to check beyond its key (`_SessionKeys.claims`)."""
+        if known.secret is None:
+            return True
+        tag = tagged(known.secret, payload)
+        if tag is None:
+            return False
+        c, t = tag
+        cfg = self.config
+        if not now - cfg.max_age <= t <= now + cfg.max_clock_skew:
+            return False
+        with self._guard:
+            recent = self._recent
+            while recent and next(iter(recent.values())) < now - cfg.max_age:
+                recent.popitem(last=False)
+            if (client, service, c) in recent:
+                return False
+            recent[(client, service, c)] = now
+        return True
 
     def _limits_of(self, client: str, now: float) -> _Limits:
         """The client's budgets, new (full) if it has none (hold ``_guard``)."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -25,7 +25,7 @@ from laas.map.frame import sharpest_turn
 from laas.map.geo import UtmProjection
 from laas.map.hdmap import DIRECTIONS, LANE_TYPES, Direction, HdMap, Lane, LaneType, Segment
 
-__all__ = ["read_geojson", "read_geojson_file"]
+__all__ = ["Reject", "read_geojson", "read_geojson_file"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -49,9 +49,21 @@ def read_geojson_file(path: str | Path) -> HdMap:
     return read_geojson(data, source=str(p))
 
 
-def read_geojson(data: Mapping[str, Any], source: str = "<memory>") -> HdMap:
-    """Build a map from a parsed GeoJSON FeatureCollection."""
-    return _build(data, source)
+Reject = Callable[[str, str], None]
+"""Called with (segment id, the loader's message) for each road element left out."""
+
+
+def read_geojson(
+    data: Mapping[str, Any], source: str = "<memory>", reject: Reject | None = None
+) -> HdMap:
+    """Build a map from a parsed GeoJSON FeatureCollection.
+
+    Without `reject` any fault raises :class:`MapError`. With it (the importers'
+    mode), a road element with a fault is left out and passed to `reject` with the
+    message, and references to it are dropped from its neighbours' successors; the
+    FeatureCollection itself must still be one, with at least one usable element.
+    """
+    return _build(data, source, reject)
 
 
 @dataclass
@@ -184,7 +196,7 @@ def _parse_feature(source: str, i: int, feature: object) -> _RawLane:
     )
 
 
-def _build(data: Mapping[str, Any], source: str) -> HdMap:
+def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -> HdMap:
     if not isinstance(data, Mapping) or data.get("type") != "FeatureCollection":
         got = data.get("type") if isinstance(data, Mapping) else type(data).__name__
         raise MapError(f"{source}: not a GeoJSON FeatureCollection (type is {got!r})")
@@ -194,16 +206,35 @@ def _build(data: Mapping[str, Any], source: str) -> HdMap:
     if not features:
         raise MapError(f"{source}: FeatureCollection has no features")
 
-    raws = [_parse_feature(source, i, f) for i, f in enumerate(features)]
+    raws: list[_RawLane] = []
+    bad: set[str] = set()  # segments left out (with `reject` only)
+
+    def fault(seg_id: str, exc: MapError) -> None:
+        if reject is None:
+            raise exc
+        if seg_id not in bad:
+            bad.add(seg_id)
+            reject(seg_id, str(exc))
+
+    for i, f in enumerate(features):
+        try:
+            raws.append(_parse_feature(source, i, f))
+        except MapError as exc:
+            props = f.get("properties") if isinstance(f, Mapping) else None
+            seg = props.get("segment") if isinstance(props, Mapping) else None
+            fault(seg if isinstance(seg, str) and seg else f"feature {i}", exc)
     by_seg: dict[str, dict[int, _RawLane]] = {}
     for raw in raws:
         lanes = by_seg.setdefault(raw.segment, {})
         if raw.index in lanes:
             first = lanes[raw.index].feature
-            raise MapError(
-                f"{_where(source, raw.feature, raw.segment, raw.index)}: duplicate "
-                f"lane (segment {raw.segment!r}, lane {raw.index}) also in feature "
-                f"{first}"
+            fault(
+                raw.segment,
+                MapError(
+                    f"{_where(source, raw.feature, raw.segment, raw.index)}: duplicate "
+                    f"lane (segment {raw.segment!r}, lane {raw.index}) also in feature "
+                    f"{first}"
+                ),
             )
         lanes[raw.index] = raw
     for seg_id, lanes in by_seg.items():
@@ -211,28 +242,49 @@ def _build(data: Mapping[str, Any], source: str) -> HdMap:
         got = sorted(lanes)
         if got != expected:
             missing = sorted(set(expected) - set(got))
-            bad = min(i for i in got if i not in expected)
-            raise MapError(
-                f"{_where(source, lanes[bad].feature, seg_id, bad)}: lane indices of "
-                f"segment {seg_id!r} must be contiguous from 0, got {got} "
-                f"(missing {missing})"
+            wrong = min(i for i in got if i not in expected)
+            fault(
+                seg_id,
+                MapError(
+                    f"{_where(source, lanes[wrong].feature, seg_id, wrong)}: lane indices of "
+                    f"segment {seg_id!r} must be contiguous from 0, got {got} "
+                    f"(missing {missing})"
+                ),
             )
-    for raw in raws:
-        for succ in raw.successors:
-            if succ not in by_seg:
-                raise MapError(
-                    f"{_where(source, raw.feature, raw.segment, raw.index)}: unknown "
-                    f"successor segment {succ!r}"
-                )
-
-    all_ll = np.concatenate([r.lonlat for r in raws])
+    if reject is None:
+        for raw in raws:
+            for succ in raw.successors:
+                if succ not in by_seg:
+                    raise MapError(
+                        f"{_where(source, raw.feature, raw.segment, raw.index)}: unknown "
+                        f"successor segment {succ!r}"
+                    )
+    usable = [r for r in raws if r.segment not in bad]
+    if not usable:
+        raise MapError(f"{source}: no usable road element (every one was left out)")
+    all_ll = np.concatenate([r.lonlat for r in usable])
     projection = UtmProjection.for_location(
         float(np.mean(all_ll[:, 0])), float(np.mean(all_ll[:, 1]))
     )
-    segments = []
+    segments: list[Segment] = []
     for seg_id, lanes in by_seg.items():
+        if seg_id in bad:
+            continue
         ordered = [lanes[k] for k in range(len(lanes))]
-        segments.append(_make_segment(source, projection, seg_id, ordered))
+        try:
+            segments.append(_make_segment(source, projection, seg_id, ordered))
+        except MapError as exc:
+            fault(seg_id, exc)
+    if reject is not None:
+        kept = {seg.id for seg in segments}
+        if not kept:
+            raise MapError(f"{source}: no usable road element (every one was left out)")
+        segments = [
+            Segment(seg.id, seg.lanes, [s for s in seg.successors if s in kept])
+            if any(s not in kept for s in seg.successors)
+            else seg
+            for seg in segments
+        ]
     return HdMap(segments, projection, source)
 
 

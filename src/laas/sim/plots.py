@@ -11,34 +11,18 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from laas.map.hdmap import HdMap
+from laas.map.render import draw_lanes
 from laas.models import CorrectedPosition
 from laas.sim.scenario import EPOCH_MS, Trace
 
 __all__ = ["plot_lanes_over_time", "plot_traces"]
-
-_LANE_COLOURS = {
-    "driving": "#9aa0a6",
-    "parking": "#c7b38a",
-    "bicycle": "#d98c8c",
-    "sidewalk": "#b5c99a",
-}
 
 
 def plot_traces(hdmap: HdMap, trace: Trace, path: Path, measured: bool = True) -> Path:
     """Fig. 3: the lanes of the map and every user's true trace (and raw fixes)."""
     fig, ax = plt.subplots(figsize=(7, 7))
     e0, n0 = hdmap.bounds[0], hdmap.bounds[1]
-    for segment in hdmap.segments.values():
-        for lane in segment.lanes:
-            xs, ys = lane.centerline.xy
-            ax.plot(
-                [x - e0 for x in xs],
-                [y - n0 for y in ys],
-                color=_LANE_COLOURS.get(lane.type, "grey"),
-                linewidth=max(1.0, lane.width * 2.2),
-                alpha=0.6,
-                solid_capstyle="butt",
-            )
+    draw_lanes(ax, hdmap)
     users = sorted({f.user for f in trace.fixes})
     for user in users:
         fixes = [f for f in trace.fixes if f.user == user]

@@ -1,0 +1,187 @@
+"""What every map importer shares: lane drafts, the report of what was left out, and
+writing a GeoJSON lane map that the loader accepts.
+
+An importer turns its source (Lanelet2, OpenDRIVE, OpenStreetMap) into `LaneDraft`s,
+lane centre lines in lon/lat grouped into road elements (segments) as
+``maps/README.md`` describes them, and counts in an `ImportReport` what it could not
+use, by kind. `finish` then loads the drafts with the GeoJSON reader in its lenient mode:
+a road element the loader refuses is left out and reported with the loader's message
+(and the source element it came from), never written. What `write_map` writes is
+loaded once more, strictly, before it replaces the output file: an import never writes
+a map that the loader rejects, and a failed import leaves the old file as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from laas.errors import MapError
+from laas.map.geojson import read_geojson
+from laas.map.hdmap import Direction, HdMap, LaneType
+
+__all__ = ["ImportReport", "ImportResult", "LaneDraft", "feature_collection", "finish"]
+
+FloatArray = npt.NDArray[np.float64]
+
+_EXAMPLES = 3  # source elements named per kind in the report
+_DIGITS = 8  # decimal places of lon/lat written: 1e-8 degrees is about 1 mm
+
+
+@dataclass
+class LaneDraft:
+    """One lane of one road element, as an importer found it.
+
+    `lonlat` is the lane's centre line, (n, 2) longitude and latitude, ordered along the
+    segment's reference direction; `index` counts from the left edge looking along it;
+    `origin` names the source element ("lanelet 1234", "road 5 laneSection s=12.0",
+    "way 123") for messages; `properties` are kept in the map (``Lane.properties``).
+    """
+
+    segment: str
+    index: int
+    type: LaneType
+    width: float
+    direction: Direction
+    lonlat: FloatArray
+    origin: str
+    successors: tuple[str, ...] = ()
+    properties: dict[str, Any] = field(default_factory=dict)
+
+    def feature(self) -> dict[str, Any]:
+        """The lane as a GeoJSON Feature of the lane-map format."""
+        props: dict[str, Any] = {
+            "segment": self.segment,
+            "lane": self.index,
+            "type": self.type,
+            "width": round(float(self.width), 3),
+            "direction": self.direction,
+            "successors": list(self.successors),
+            "origin": self.origin,
+        }
+        props.update(self.properties)
+        coords = np.round(np.asarray(self.lonlat, dtype=np.float64), _DIGITS)
+        return {
+            "type": "Feature",
+            "properties": props,
+            "geometry": {"type": "LineString", "coordinates": coords.tolist()},
+        }
+
+
+class ImportReport:
+    """What an import could not use, counted by kind, with the first source elements of
+    each kind named; and what it produced."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.skipped: Counter[str] = Counter()
+        self.examples: dict[str, list[str]] = {}
+        self.segments = 0
+        self.lanes = 0
+
+    def skip(self, kind: str, where: str, count: int = 1) -> None:
+        """Count `count` things of `kind` left out, the first of them at `where`."""
+        self.skipped[kind] += count
+        names = self.examples.setdefault(kind, [])
+        if len(names) < _EXAMPLES:
+            names.append(where)
+
+    def lines(self) -> list[str]:
+        """The report as lines of text, most frequent kind first."""
+        out = [f"{self.source}: {self.segments} road elements, {self.lanes} lanes written"]
+        if not self.skipped:
+            out.append("nothing left out")
+        for kind, n in self.skipped.most_common():
+            named = "; ".join(self.examples.get(kind, []))
+            out.append(f"left out: {n} x {kind} (e.g. {named})")
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "source": self.source,
+            "segments": self.segments,
+            "lanes": self.lanes,
+            "skipped": dict(self.skipped),
+            "examples": self.examples,
+        }
+
+
+@dataclass
+class ImportResult:
+    """A finished import: the map as loaded, its GeoJSON, and the report."""
+
+    hdmap: HdMap
+    geojson: dict[str, Any]
+    report: ImportReport
+
+    def write(self, out: str | Path) -> None:
+        """Write the map to `out` (atomically: a temporary file, loaded strictly, then
+        renamed over `out`)."""
+        write_map(self.geojson, out)
+
+
+def feature_collection(lanes: Iterable[LaneDraft]) -> dict[str, Any]:
+    """The drafts as a GeoJSON FeatureCollection of the lane-map format."""
+    return {"type": "FeatureCollection", "features": [lane.feature() for lane in lanes]}
+
+
+def finish(drafts: Iterable[LaneDraft], report: ImportReport) -> ImportResult:
+    """Load the drafts leniently: every road element the loader refuses is left out and
+    reported (kind "rejected by the loader", named by its source element), references to
+    it are dropped from its neighbours. Raises `MapError` if nothing is left."""
+    lanes = list(drafts)
+    origins: dict[str, str] = {}
+    for lane in lanes:
+        origins.setdefault(lane.segment, lane.origin)
+    rejected: dict[str, str] = {}
+
+    def reject(segment: str, message: str) -> None:
+        rejected[segment] = message
+        where = origins.get(segment, segment)
+        report.skip("road element rejected by the loader", f"{where}: {message}")
+
+    data = feature_collection(lanes)
+    hdmap = read_geojson(data, source=report.source, reject=reject)
+    kept = hdmap.segments
+    features = []
+    for lane, feature in zip(lanes, data["features"], strict=True):
+        if lane.segment not in kept:
+            continue
+        props = feature["properties"]
+        props["successors"] = [s for s in props["successors"] if s in kept]
+        features.append(feature)
+    geojson = {"type": "FeatureCollection", "features": features}
+    report.segments = len(kept)
+    report.lanes = len(features)
+    return ImportResult(hdmap, geojson, report)
+
+
+def write_map(geojson: dict[str, Any], out: str | Path) -> None:
+    """Write a lane map to `out` after loading it strictly; the old file stays until the
+    new one is complete."""
+    path = Path(out)
+    read_geojson(geojson, source=str(path))  # raises MapError: nothing written
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(geojson, fh, separators=(",", ":"))
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def no_lanes(source: str) -> MapError:
+    """The error of an import that found nothing to write."""
+    return MapError(f"{source}: no lanes found that LaaS can use (see the report above)")

@@ -147,3 +147,15 @@ class EngineConfig(Settings):
     bias_resolution: Positive = Field(
         default=0.3, description="cell size of the common error's grid posterior, m"
     )
+    max_user_evidence: Positive | None = Field(
+        default=16.0,
+        description=(
+            "default mode: K, nats. One participant of an area may be lying: where its own "
+            "evidence is more than K nats below its best, it is more likely that than "
+            "honest, and it counts against that value of the common error by K at most, so "
+            "it moves the estimate by at most sqrt(2 K) standard deviations of the others' "
+            "(laas.engine.common_error). 16: 19 in 20 honest receivers of the dev suite "
+            "never come that far from the true common error "
+            "(scripts/liar_deficits.py). None: every user's evidence counts in full"
+        ),
+    )

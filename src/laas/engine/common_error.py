@@ -16,6 +16,57 @@ Across one straight road the posterior is a ridge along the road: nothing is cor
 along it until some user drives a road of another direction, and the covariance of b
 says so (and with it every answer's along-road accuracy). `UGrid` is the 1-D grid of
 u = n . b shared by every direction n, and `project` gives the posterior of u.
+
+A participant that lies (issue 11). Pooled in full, the evidence of one user who
+reports a false path (or whose receiver is broken) pulls b towards its false value by
+about its share of all the evidence, however far off it is. The robust posterior (on
+when `cap` K is given) admits that one participant of the area may not be honest: with
+prior probability pi each, user j's fixes say nothing about b, and at most one such
+user at a time:
+
+    p(fixes | b) = (1 - N pi) prod_i L_i(b) + sum_j pi L0_j prod_{i != j} L_i(b)
+
+with L_i(b) = prod_k c_k(n_k . b) user i's own likelihood (c_k its k-th fix's evidence,
+lanes summed out: `update`'s log_c). Setting pi L0_j = (1 - N pi) e^-K max_b L_j(b),
+the floor K nats below the user's own best,
+
+    log p(b) = [log p0(b) + sum_i log L_i(b)] + log(1 + S(b)),
+    S(b) = sum_j exp(-K - T_j(b)),   T_j = log L_j - max_b log L_j   (max over the window)
+
+The bracket is the pooled posterior of the model without the cap; log(1 + S) forgives.
+User j's part, T_j + log(1 + R + e^(-K - T_j)) = log((1 + R) e^T_j + e^-K) with
+R = sum_{i != j} e^(-K - T_i), lies in [-K, log(1 + R)]. Where the others agree with each
+other (R ~ N e^-K), whatever j reports moves log p(b) by at most K (+ log(1 + R)) between
+any two values of b, so the posterior's maximum moves by at most
+
+    |b_L - b_H|_{P^-1} <= sqrt(2 (K + log(1 + R)))  ~  sqrt(2 K)
+
+standard deviations of the others' estimate P (for it, f(b) = -d^2 / 2 + C(b), C in
+[-K, 0], has f(b_max) >= f(b_H) >= -K, so d^2 / 2 <= K). An honest user near the
+consensus (T_i well above -K there) counts as before; a second user far off where the
+first is forgiven counts in full, so a value of b that needs two liars keeps no mass and
+the window shrinks as without the cap. Each user keeps its own record T_j (the sum of its
+fixes' log c, normalised), renewed at each of its fixes, so a liar's earlier fixes are
+forgiven with its later ones. One fix of user j does
+
+    T_j      <- T_j + log c_k(n_k . b) - max(.)
+    S        += exp(-K - T_j,new) - exp(-K - T_j,old)          (kept as log S)
+    log p(b) += log c_k(n_k . b) + log(1 + S_new) - log(1 + S_old)
+
+and the prediction blurs log p(b) as a whole, as without the cap (the records are not
+blurred: the walk is the posterior's; blurring each user's part on its own would let the
+estimate follow a drifting b too slowly). A user silent for `_EVIDENCE_KEEP` s has left:
+its term leaves S and the forgiveness it gave stays in log p as it stands. A participant
+can be doubted only against another's evidence: the first user of an area counts in
+full (S = 0) until a second joins. Each record keeps T on a frame of grid cells that
+only grows; T is the user's evidence as it went into log p, so where the window never
+held a cell at the user's fixes T = 0 (log p there holds none of it to forgive), and S
+stays the sum over the records cell by cell.
+
+With two users and nobody else, either may be the liar: the posterior then leans to one
+of them where the Gaussian pool split the difference. The bound is per participant: a
+liar with several identities (or one that is silent for `_EVIDENCE_KEEP` s and returns)
+is several participants.
 """
 
 from __future__ import annotations
@@ -28,6 +79,10 @@ __all__ = ["CommonError", "CommonErrorField", "UGrid"]
 
 _U_STEP = 0.1  # m: cell of the 1-D grid of u = n . b, well below any lane-evidence width
 _DROP = 40.0  # cells this far below the maximum in log p hold no mass worth keeping
+_BLUR_STEP = 0.05  # blur once the walk's variance since the last blur is 2 * this * res^2
+_EVIDENCE_KEEP = 60.0  # s: a user silent this long has left; its evidence joins `base`
+_RESUM = 256  # every this many robust updates S is summed afresh from the records
+_HALF = math.log(2.0)
 
 
 class UGrid:
@@ -53,7 +108,12 @@ class CommonError:
     """
 
     def __init__(
-        self, centre: np.ndarray, prior_sigma: float, drift: float, resolution: float
+        self,
+        centre: np.ndarray,
+        prior_sigma: float,
+        drift: float,
+        resolution: float,
+        cap: float | None = None,
     ) -> None:
         self.centre = centre.copy()
         half = 3.5 * prior_sigma  # wide enough that no ridge of likely values is clipped
@@ -72,6 +132,14 @@ class CommonError:
         self.updates = 0
         self.b = np.zeros(2)
         self.P = np.eye(2) * prior_sigma**2
+        # the robust posterior (module docstring): the records of `_users`, S and
+        # log(1 + S) on the grid (kept outside the window too, like the records)
+        self.cap = cap
+        self._users: dict[str, _UserEvidence] = {}
+        self._ls = np.full_like(self._log, -np.inf) if cap is not None else self._log  # log S
+        self._l = np.zeros_like(self._log) if cap is not None else self._log  # log(1 + S)
+        self._robust_updates = 0
+        self._quorum = False  # the records are counted in S (two users or more)
         self._moments()
 
     def _moments(self) -> None:
@@ -109,7 +177,8 @@ class CommonError:
         )
         if new != self._win:
             outside = np.full_like(self._log, -2.0 * _DROP)
-            outside[new[0] : new[1], new[2] : new[3]] = self._log[new[0] : new[1], new[2] : new[3]]
+            inside = (slice(new[0], new[1]), slice(new[2], new[3]))
+            outside[inside] = self._log[inside]
             self._log = outside
             self._win = new
 
@@ -118,15 +187,13 @@ class CommonError:
         if self.t is not None and t > self.t:
             self._pending_var += self._drift_var * (t - self.t)
             a = self._pending_var / (2.0 * self._res**2)  # a walk of +-res steps, prob a each
-            if a >= 0.05:
+            if a >= _BLUR_STEP:
                 a = min(a, 0.25)
                 self._pending_var -= 2.0 * a * self._res**2
                 n = self._axis.size
                 i0, i1, j0, j1 = self._win
                 i0, i1, j0, j1 = max(0, i0 - 1), min(n, i1 + 1), max(0, j0 - 1), min(n, j1 + 1)
-                p = np.exp(self._log[i0:i1, j0:j1])
-                for axis in (0, 1):
-                    p = (1 - 2 * a) * p + a * (np.roll(p, 1, axis) + np.roll(p, -1, axis))
+                p = _walk(np.exp(self._log[i0:i1, j0:j1]), a)
                 self._log[i0:i1, j0:j1] = np.log(np.maximum(p, 1e-300))
                 self._win = (i0, i1, j0, j1)
                 self._moments()
@@ -151,14 +218,182 @@ class CommonError:
         w, idx = self.weights_and_cells(normal)
         return np.bincount(idx.ravel(), weights=w.ravel(), minlength=self.u.size)
 
-    def update(self, normal: np.ndarray, log_c: np.ndarray) -> None:
-        """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b]."""
+    def update(self, normal: np.ndarray, log_c: np.ndarray, user: str | None = None) -> None:
+        """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b]; in a robust
+        area, as `user`'s renewed part of the one-liar mixture (module docstring)."""
         i0, i1, j0, j1 = self._win
-        sub = self._log[i0:i1, j0:j1] + log_c[self._cells(normal)]
-        self._log[i0:i1, j0:j1] = sub - sub.max()
+        if self.cap is not None and user is not None:
+            self._robust(user, log_c[self._cells(normal)])
+        else:
+            evidence = log_c[self._cells(normal)]
+            sub = self._log[i0:i1, j0:j1] + evidence
+            self._log[i0:i1, j0:j1] = sub - sub.max()
         self.updates += 1
         self._shrink()
         self._moments()
+
+    def _robust(self, user: str, evidence: np.ndarray) -> None:
+        """One fix of `user` in the robust posterior: the pooled update, and the change of
+        log(1 + S) as the user's record T is renewed."""
+        assert self.cap is not None
+        k = self.cap
+        win = self._win
+        i0, i1, j0, j1 = win
+        t = self.t if self.t is not None else 0.0
+        self._robust_updates += 1
+        if self._robust_updates % 16 == 0:
+            self._leave_silent(t)
+        record = self._users.get(user)
+        if record is None:
+            record = self._users[user] = _UserEvidence(win, t, counted=self._quorum)
+            if record.counted:  # T = 0: e = e^-K on its frame
+                at = (slice(i0, i1), slice(j0, j1))
+                self._add_e(at, np.ones(record.log.shape, dtype=bool), self._log_e(record))
+        record.t = t
+        self._cover(record, win)
+        mine = record.cells(win)
+        old_t = record.log[mine].astype(np.float64)
+        own = old_t + evidence
+        own -= own.max()
+        new_t = own.astype(np.float32)
+        record.log[mine] = new_t
+        sub = self._log[i0:i1, j0:j1] + evidence
+        if record.counted:
+            # log S' = log(S - e_old + e_new) = logaddexp(log S + log(1 - r), log e_new),
+            # r = e_old / S <= 1; where e_old was most of S (r > 1/2, digits would be lost)
+            # log S is summed afresh from the records
+            ls = self._ls[i0:i1, j0:j1]
+            back = new_t.astype(np.float64)
+            r = np.minimum(np.exp(-k - old_t - ls), 1.0)
+            lost = (r > 0.5) & (back - old_t > _HALF)  # e_new < e_old / 2
+            with np.errstate(divide="ignore"):  # r = 1: the user was all of S
+                fresh = np.logaddexp(ls + np.log1p(-r), -k - back)
+            if lost.any():
+                fresh[lost] = self._sum(win, lost)
+            ls[:] = fresh
+            one = self._l[i0:i1, j0:j1]
+            sub -= one
+            one[:] = np.logaddexp(0.0, fresh)
+            sub += one
+        if not self._quorum and len(self._users) >= 2:
+            self._log[i0:i1, j0:j1] = sub
+            self._count()
+            sub = self._log[i0:i1, j0:j1]
+        if self._robust_updates % _RESUM == 0:
+            self._log[i0:i1, j0:j1] = sub
+            self._resum()
+            sub = self._log[i0:i1, j0:j1]
+        self._log[i0:i1, j0:j1] = sub - sub.max()
+
+    def _log_e(self, record: _UserEvidence, cells: tuple[slice, slice] | None = None) -> np.ndarray:
+        """log e = -K - T of a record (float64), on its frame or some of its cells."""
+        assert self.cap is not None
+        own = record.log if cells is None else record.log[cells]
+        out: np.ndarray = -self.cap - own.astype(np.float64)
+        return out
+
+    def _sum(self, win: tuple[int, int, int, int], where: np.ndarray) -> np.ndarray:
+        """log S at the cells `where` of window `win`, summed afresh from the records."""
+        total = np.full(int(where.sum()), -np.inf)
+        for record in self._users.values():
+            if record.counted:
+                self._cover(record, win)
+                total = np.logaddexp(total, self._log_e(record, record.cells(win))[where])
+        return total
+
+    def _count(self) -> None:
+        """Start counting the records in S. A participant's fixes can be doubted only
+        against someone else's: the first user of an area counts in full (forgiving it
+        would only mix the prior into its own answers) until a second one joins; from then
+        on every user is counted, the area's earlier evidence standing for the others."""
+        self._quorum = True
+        for record in self._users.values():
+            if not record.counted:
+                f = record.frame
+                at = (slice(f[0], f[1]), slice(f[2], f[3]))
+                self._add_e(at, np.ones(record.log.shape, dtype=bool), self._log_e(record))
+                record.counted = True
+
+    def _cover(self, record: _UserEvidence, win: tuple[int, int, int, int]) -> None:
+        """Grow the record's frame to hold `win`. The new cells were outside the window
+        at every fix of the user, so none of its evidence is in log p there: T = 0, and
+        their e joins S (so S stays the sum over the records)."""
+        f = record.frame
+        if f[0] <= win[0] and win[1] <= f[1] and f[2] <= win[2] and win[3] <= f[3]:
+            return
+        new = (min(f[0], win[0]), max(f[1], win[1]), min(f[2], win[2]), max(f[3], win[3]))
+        grown = np.zeros((new[1] - new[0], new[3] - new[2]), dtype=np.float32)
+        old = (slice(f[0] - new[0], f[1] - new[0]), slice(f[2] - new[2], f[3] - new[2]))
+        grown[old] = record.log
+        fresh = np.ones(grown.shape, dtype=bool)
+        fresh[old] = False
+        record.log, record.frame = grown, new
+        if record.counted:
+            at = (slice(new[0], new[1]), slice(new[2], new[3]))
+            self._add_e(at, fresh, self._log_e(record))
+
+    def _add_e(self, at: tuple[slice, slice], where: np.ndarray, log_e: np.ndarray) -> None:
+        """S at the cells `where` of block `at` gains the e there (log e, an array over
+        the block), log(1 + S) with it, and log p its change (outside the window log p
+        holds no mass: it changes there only as the window's edge grows into it)."""
+        ls, one, log = self._ls[at], self._l[at], self._log[at]
+        ls[where] = np.logaddexp(ls[where], log_e[where])
+        fresh = np.logaddexp(0.0, ls)
+        i0, i1, j0, j1 = self._win
+        r0, c0 = at[0].start, at[1].start
+        inside = np.zeros_like(where)
+        inside[max(i0 - r0, 0) : max(i1 - r0, 0), max(j0 - c0, 0) : max(j1 - c0, 0)] = True
+        inside &= where
+        log[inside] += fresh[inside] - one[inside]
+        one[where] = fresh[where]
+
+    def _leave_silent(self, t: float) -> None:
+        """Users silent for `_EVIDENCE_KEEP` s have left: their term leaves S, and the
+        forgiveness it gave stays in log p as it stands."""
+        gone = [u for u, r in self._users.items() if t - r.t > _EVIDENCE_KEEP]
+        for user in gone:
+            record = self._users.pop(user)
+            if not record.counted:
+                continue
+            f = record.frame
+            at = (slice(f[0], f[1]), slice(f[2], f[3]))
+            ls = self._ls[at]
+            r = np.minimum(np.exp(self._log_e(record) - ls), 1.0)
+            lost = r > 0.5
+            with np.errstate(divide="ignore"):
+                fresh = ls + np.log1p(-r)
+            if lost.any():  # summed afresh where its term was most of S
+                total = np.full(int(lost.sum()), -np.inf)
+                for other in self._users.values():
+                    if other.counted:
+                        self._cover(other, f)
+                        total = np.logaddexp(total, self._log_e(other, other.cells(f))[lost])
+                fresh[lost] = total
+            ls[:] = fresh
+            self._l[at] = np.logaddexp(0.0, fresh)
+
+    def _resum(self) -> None:
+        """log S on the window summed afresh from the records (differences accumulate
+        rounding), log p following log(1 + S)."""
+        i0, i1, j0, j1 = self._win
+        total = self._sum(self._win, np.ones((i1 - i0, j1 - j0), dtype=bool))
+        total = total.reshape(i1 - i0, j1 - j0)
+        fresh = np.logaddexp(0.0, total)
+        self._log[i0:i1, j0:j1] += fresh - self._l[i0:i1, j0:j1]
+        self._ls[i0:i1, j0:j1] = total
+        self._l[i0:i1, j0:j1] = fresh
+
+    def user_evidence(self, user: str) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+        """(window, T) of `user`'s own normalised log-likelihood of b, if it is kept: the
+        grid cells [i0:i1, j0:j1] of the area's axes (east, north); for diagnostics."""
+        record = self._users.get(user)
+        return None if record is None else (record.frame, record.log)
+
+    def cell(self, b: np.ndarray) -> tuple[int, int]:
+        """The grid cell (east, north index) nearest a common error b (clipped to the grid)."""
+        n = self._axis.size
+        k = np.clip(np.rint((b - self._axis[0]) / self._res).astype(int), 0, n - 1)
+        return int(k[0]), int(k[1])
 
     def conditional(self, normal: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of b under p(b) weight[cell of n . b] (weight on the u-grid):
@@ -170,16 +405,60 @@ class CommonError:
         return self._stats(w / total)
 
 
+class _UserEvidence:
+    """One user's record in a robust area: T(b), the sum of its fixes' log c normalised to
+    max 0 (when last updated), on the cells `frame` of the
+    area's grid (a frame only grows, so S stays the sum of the records' e = exp(-K - T));
+    `counted`: its e is in S; `t`: its last fix."""
+
+    __slots__ = ("counted", "frame", "log", "t")
+
+    def __init__(self, frame: tuple[int, int, int, int], t: float, counted: bool) -> None:
+        self.frame = frame
+        self.log = np.zeros((frame[1] - frame[0], frame[3] - frame[2]), dtype=np.float32)
+        self.counted = counted  # (in S from its first fix on, once the area has two users)
+        self.t = t
+
+    def cells(self, win: tuple[int, int, int, int]) -> tuple[slice, slice]:
+        """The window's cells in the record's frame (which holds the window)."""
+        f = self.frame
+        return slice(win[0] - f[0], win[1] - f[0]), slice(win[2] - f[2], win[3] - f[2])
+
+
+def _walk(p: np.ndarray, a: float) -> np.ndarray:
+    """One step of the walk on a grid of probabilities: each cell gives a to each
+    neighbour along each axis, p <- (1 - 2a) p + a (p[-1] + p[+1]); what would leave the
+    array is lost (nothing wraps around from the other side)."""
+    for axis in (0, 1):
+        q = (1 - 2 * a) * p
+        if axis == 0:
+            q[1:] += a * p[:-1]
+            q[:-1] += a * p[1:]
+        else:
+            q[:, 1:] += a * p[:, :-1]
+            q[:, :-1] += a * p[:, 1:]
+        p = q
+    return p
+
+
 class CommonErrorField:
     """One `CommonError` per area: a fix joins the nearest area centre within
     `size / 2`, else founds a new area there (no grid seams on a compact map). Areas are
     indexed by a coarse grid of cell `size`, so finding one looks at nine cells at most."""
 
-    def __init__(self, size: float, prior_sigma: float, drift: float, resolution: float) -> None:
+    def __init__(
+        self,
+        size: float,
+        prior_sigma: float,
+        drift: float,
+        resolution: float,
+        cap: float | None = None,
+    ) -> None:
         self.size = size
         self._prior = prior_sigma
         self._drift = drift
         self._resolution = resolution
+        self._cap = cap
         self.areas: list[CommonError] = []
         self._cells: dict[tuple[int, int], list[CommonError]] = {}
 
@@ -198,7 +477,7 @@ class CommonErrorField:
                     if dist <= best_d:
                         best, best_d = area, dist
         if best is None:
-            best = CommonError(xy, self._prior, self._drift, self._resolution)
+            best = CommonError(xy, self._prior, self._drift, self._resolution, self._cap)
             self.areas.append(best)
             self._cells.setdefault((ci, cj), []).append(best)
         return best

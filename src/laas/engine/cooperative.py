@@ -28,6 +28,12 @@ does, exactly:
     common error log p(b) += log c(n . b)
     lanes        alpha_i(u, l) = a(u, l) (eps + N(d_i - u - o_l; 0, s^2)) / c(u)
 
+With `max_user_evidence` K set (the default), the common error is not the plain sum of
+every user's log c: user i's evidence so far, T_i(b) = sum_k log c_k(n_k . b), enters the
+one-liar mixture log p(b) = sum_i T_i + log(1 + sum_j e^(-K - T_j)) (common_error), so a
+participant that reports a false path moves b by at most sqrt(2 K) standard deviations
+of what the others say.
+
 The slide this prevents: when one user changes lanes, "b moved by a lane width" would
 need every other user to have changed lanes at that moment too, which their own
 alpha_j (sharp, since lanes persist) makes improbable; "one user changed lanes" costs
@@ -84,7 +90,11 @@ class CooperativeLaneFilter(LaneFilter):
     def __init__(self, config: EngineConfig) -> None:
         super().__init__(config)
         self._errors = CommonErrorField(
-            config.bias_area, config.bias_prior, config.bias_drift, config.bias_resolution
+            config.bias_area,
+            config.bias_prior,
+            config.bias_drift,
+            config.bias_resolution,
+            config.max_user_evidence,
         )
         self._lanes: dict[str, _Lanes] = {}
 
@@ -150,7 +160,9 @@ class CooperativeLaneFilter(LaneFilter):
         like = like**w
         joint = a * like
         c_u = joint.sum(axis=1)
-        area.update(normal, np.log(np.maximum(c_u, 1e-300)))
+        # The common error: log p(b) += log c(n . b); with K = max_user_evidence, the
+        # user's whole part of the one-liar mixture renewed instead (common_error).
+        area.update(normal, np.log(np.maximum(c_u, 1e-300)), user)
         alpha = joint / np.maximum(c_u, 1e-300)[:, None]
         self._lanes[user] = _Lanes(segment, area, normal, alpha)
 

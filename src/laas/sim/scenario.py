@@ -18,7 +18,12 @@ traces are what they always were):
   (`accuracy_scale`);
 - the error model may add heading noise that grows as speed falls (`heading_per_speed`),
   heavy-tailed outliers (`outlier_rate`), multipath jumps (`multipath_rate`), and lost
-  fixes, singly (`dropout_rate`) or in gaps (`gap_rate`).
+  fixes, singly (`dropout_rate`) or in gaps (`gap_rate`);
+- a user may lie (`lie`, a `Lie`): its receiver reports a false path, its own path moved
+  across and along the road or onto another lane, at once or growing slowly. The lie is a
+  plausible drive (inside the area, on or near the road, speed and heading those of the
+  false path) and draws no random numbers, so a trace with a liar has the same noise as
+  the same trace without one, and the two can be compared fix by fix.
 
 These draw from a second random stream (seeded by (seed, 1)), so the first stream, and with
 it every trace of a scenario that uses none of them, is unchanged.
@@ -42,6 +47,7 @@ from laas.models import GpsMeasurement
 __all__ = [
     "SCENARIOS",
     "ErrorModel",
+    "Lie",
     "Scenario",
     "SimulatedFix",
     "Trace",
@@ -111,6 +117,40 @@ class ErrorModel(BaseModel):
     )
 
 
+class Lie(BaseModel):
+    """A participant that lies: what its receiver reports is a false path.
+
+    The false path is the user's own path with its station moved `along` metres ahead and
+    its lateral offset moved `across` metres to the right of its direction of travel, plus
+    the lateral step to the lane `lanes` lanes to its right (negative: left; clipped to the
+    road) at every moment, following the user's own lane changes. From `start` on (the
+    user's own clock) the lie is f(t) times that displacement, f growing linearly from 0
+    to 1 over `ramp` seconds (0: at once), so a slowly growing drift is a long ramp. Speed
+    and heading are those of the false path, and the common error, noise and receiver
+    effects are added to it as to an honest fix.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    across: float = Field(default=0.0, description="m to the right of the direction of travel")
+    along: float = Field(default=0.0, description="m ahead along the direction of travel")
+    lanes: int = Field(default=0, description="lanes to the right of the true lane (< 0: left)")
+    start: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0, description="when the lie begins, s of the user's own clock"
+    )
+    ramp: Annotated[float, Field(ge=0.0)] = Field(
+        default=0.0, description="seconds over which the lie grows to its full size (0: at once)"
+    )
+
+    def factor(self, t: float) -> float:
+        """f(t): the share of the lie at time t, 0 before `start`, 1 after `ramp`."""
+        if t < self.start:
+            return 0.0
+        if self.ramp <= 0.0:
+            return 1.0
+        return min(1.0, (t - self.start) / self.ramp)
+
+
 class UserPlan(BaseModel):
     """One road user's drive: lanes[k] = (from second, lane index).
 
@@ -170,6 +210,9 @@ class UserPlan(BaseModel):
             "defines it (None: it reports none)"
         ),
     )
+    lie: Lie | None = Field(
+        default=None, description="this participant reports a false path (None: it does not)"
+    )
 
     @model_validator(mode="after")
     def _check_times(self) -> UserPlan:
@@ -221,6 +264,7 @@ class SimulatedFix:
     common_n: float = 0.0  # and m north
     receiver_e: float = 0.0  # the receiver's own constant error, m east
     receiver_n: float = 0.0  # and m north
+    lie: bool = False  # the measurement reports a false path (`UserPlan.lie`)
 
 
 @dataclass(frozen=True)
@@ -399,15 +443,17 @@ class _Motion:
         return times, stations
 
 
+def _station(plan: UserPlan, t: float, table: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+    """The user's station on the route at its time t."""
+    if table is not None:
+        return float(np.interp(t, table[0], table[1]))
+    return plan.start + (-plan.speed if plan.reverse else plan.speed) * _cruising_time(plan, t)
+
+
 def _true_state(
     route: _Route, plan: UserPlan, t: float, table: tuple[np.ndarray, np.ndarray] | None = None
 ) -> tuple[float, float, str, int, Segment, float]:
-    if table is not None:
-        station = float(np.interp(t, table[0], table[1]))
-    else:
-        station = plan.start + (-plan.speed if plan.reverse else plan.speed) * _cruising_time(
-            plan, t
-        )
+    station = _station(plan, t, table)
     if not 0.0 <= station <= route.length:
         raise ConfigError(
             f"user {plan.user!r} runs off the end of the route at t={t:.1f} s; "
@@ -420,6 +466,33 @@ def _true_state(
     d, lane = _lateral(plan, t, offsets)
     e, n = segment.point(s, d)
     return e, n, segment.id, lane, segment, s
+
+
+def _false_position(
+    route: _Route,
+    plan: UserPlan,
+    lie: Lie,
+    t: float,
+    table: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[float, float]:
+    """Where a lying user says it is at its time t (see `Lie`): station s + f sign along,
+    lateral offset d + f ((d_k - d) + sign across), with sign -1 for a user driving against
+    the reference and d_k its offset had it driven `lanes` lanes to its right."""
+    f = lie.factor(t)
+    sign = -1.0 if plan.reverse else 1.0
+    station = _station(plan, t, table)
+    station = min(max(station + f * sign * lie.along, 0.0), route.length)
+    segment, s = route.locate(station)
+    offsets = segment.lane_offsets(s)
+    d, _ = _lateral(plan, t, offsets)
+    shift = d
+    if lie.lanes:
+        step = lie.lanes if not plan.reverse else -lie.lanes
+        last = len(offsets) - 1
+        moved = tuple((since, min(max(k + step, 0), last)) for since, k in plan.lanes)
+        shift, _ = _lateral(plan.model_copy(update={"lanes": moved}), t, offsets)
+    e, n = segment.point(s, d + f * ((shift - d) + sign * lie.across))
+    return e, n
 
 
 def _events(
@@ -544,29 +617,44 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
             else:  # standing still: the way it faces
                 heading = (segment.heading(s) + (180.0 if plan.reverse else 0.0)) % 360.0
             speed = math.hypot(e2 - e0, n2 - n0) / (hi - lo)
+            # what the receiver reports: the true path, or a liar's false one with the
+            # false path's own heading and speed
+            rep_e, rep_n, rep_heading, rep_speed = e, n, heading, speed
+            lying = plan.lie is not None and plan.lie.factor(local) > 0.0
+            if plan.lie is not None and lying:
+                rep_e, rep_n = _false_position(route, plan, plan.lie, local, table)
+                f2 = _false_position(route, plan, plan.lie, hi, table)
+                f0 = _false_position(route, plan, plan.lie, lo, table)
+                if math.hypot(f2[0] - f0[0], f2[1] - f0[1]) > 1e-9:
+                    rep_heading = math.degrees(math.atan2(f2[0] - f0[0], f2[1] - f0[1])) % 360.0
+                rep_speed = math.hypot(f2[0] - f0[0], f2[1] - f0[1]) / (hi - lo)
             sigma = errors.sigma_pos * plan.noise_scale
-            me = e + bias[0] + rng.normal(0.0, sigma)
-            mn = n + bias[1] + rng.normal(0.0, sigma)
+            me = rep_e + bias[0] + rng.normal(0.0, sigma)
+            mn = rep_n + bias[1] + rng.normal(0.0, sigma)
             if errors.outlier_rate > 0.0 and extra.random() < errors.outlier_rate:
                 me = (
-                    e + bias[0] + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
+                    rep_e
+                    + bias[0]
+                    + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
                 )
                 mn = (
-                    n + bias[1] + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
+                    rep_n
+                    + bias[1]
+                    + errors.outlier_scale * float(extra.standard_t(errors.outlier_dof))
                 )
             jump = receiver.offset(local)
             me += plan.bias[0] + jump[0]
             mn += plan.bias[1] + jump[1]
             sigma_h = errors.sigma_heading
             if errors.heading_per_speed > 0.0:
-                sigma_h = min(180.0, sigma_h + errors.heading_per_speed / max(speed, 0.1))
+                sigma_h = min(180.0, sigma_h + errors.heading_per_speed / max(rep_speed, 0.1))
             accuracy = None
             if plan.accuracy_scale is not None:
                 level = plan.accuracy_scale * math.sqrt(2.0) * sigma
                 jitter = math.exp(float(extra.normal(0.0, errors.accuracy_jitter)))
                 accuracy = max(0.1, round(level * jitter, 1))
             lon, lat = hdmap.projection.to_wgs84(me, mn)
-            reported = (heading + convergence + rng.normal(0.0, sigma_h)) % 360.0
+            reported = (rep_heading + convergence + rng.normal(0.0, sigma_h)) % 360.0
             measurement = GpsMeasurement(
                 timestamp=EPOCH_MS + round(t * 1000.0),
                 latitude=lat,
@@ -574,7 +662,7 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
                 altitude=10.0,
                 # the receiver reports a true bearing: grid bearing + convergence
                 heading=reported if reported < 360.0 else 0.0,
-                speed=max(0.0, speed + rng.normal(0.0, errors.sigma_vel)),
+                speed=max(0.0, rep_speed + rng.normal(0.0, errors.sigma_vel)),
                 accuracy=accuracy,
             )
             fixes.append(
@@ -591,6 +679,7 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
                     float(bias[1]),
                     plan.bias[0],
                     plan.bias[1],
+                    lying,
                 )
             )
     return Trace(scenario=scenario, errors=errors, seed=seed, fixes=tuple(fixes))

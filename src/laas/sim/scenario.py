@@ -27,14 +27,32 @@ traces are what they always were):
 
 These draw from a second random stream (seeded by (seed, 1)), so the first stream, and with
 it every trace of a scenario that uses none of them, is unchanged.
+
+A user may instead drive a path of its own (`UserPlan.path`), for maps whose lane layout
+changes and whose roads branch: a chain of (segment, lane) pieces, each driven along the
+lane's centre line in its direction of travel (a `backward` lane against the segment's
+coordinate order; a `both` lane forward unless the step says "backward"). The centre lines
+are joined into one polyline in the map's UTM projection, and `start` and the distance
+driven (`distance_driven`: speed, stops, enter and leave as above) are metres along it, so
+the true position is continuous across element boundaries and through junctions. Where a
+lane ends a little apart from where the next one starts (a lane that merges, the corner of
+a junction) a straight chord joins them; its first half belongs to the piece before, its
+second half to the piece after. The true segment and lane of a fix are those of the piece
+it is on. Consecutive pieces must connect: the one is a successor of the other and their
+facing ends are at most `PATH_SUCCESSOR_GAP` metres apart, or their facing ends are at most
+`PATH_JOIN_GAP` metres apart. A path fixes the user's lanes and its direction, so it cannot
+be combined with `lanes`, `reverse`, `along_lane` or a `lie`. A path draws no random
+numbers: a user without one (every user of the built-in scenarios and families) is
+simulated exactly as before. `laas.sim.roam` draws such paths on any map.
 """
 
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -45,13 +63,17 @@ from laas.map.hdmap import HdMap, Segment
 from laas.models import GpsMeasurement
 
 __all__ = [
+    "PATH_JOIN_GAP",
+    "PATH_SUCCESSOR_GAP",
     "SCENARIOS",
     "ErrorModel",
     "Lie",
+    "PathStep",
     "Scenario",
     "SimulatedFix",
     "Trace",
     "UserPlan",
+    "Way",
     "distance_driven",
     "get_scenario",
     "hamburg_scenario",
@@ -62,6 +84,16 @@ __all__ = [
 
 
 EPOCH_MS = 1_700_000_000_000  # 2023-11-14T22:13:20Z, the scenario's t = 0
+
+PATH_JOIN_GAP = 3.0
+"""m: path pieces whose facing ends are this close connect, successors or not."""
+PATH_SUCCESSOR_GAP = 15.0
+"""m: a successor's lane may start this far from where the previous lane ends."""
+
+Way = Literal["forward", "backward"]
+"""The way a path piece is driven: along its segment's coordinate order, or against it."""
+PathStep = tuple[str, int] | tuple[str, int, Way]
+"""One piece of a path: (segment id, lane index), or with the way it is driven."""
 
 
 class ErrorModel(BaseModel):
@@ -152,7 +184,8 @@ class Lie(BaseModel):
 
 
 class UserPlan(BaseModel):
-    """One road user's drive: lanes[k] = (from second, lane index).
+    """One road user's drive: lanes[k] = (from second, lane index) on the scenario's route,
+    or its own `path` of (segment, lane) pieces (see the module docstring).
 
     Times (lanes, enter, leave, stops) are the user's own clock, t - phase.
     """
@@ -162,8 +195,12 @@ class UserPlan(BaseModel):
     user: str
     kind: str
     speed: Annotated[float, Field(ge=0.0)] = Field(description="cruising speed, m/s; 0: parked")
-    start: Annotated[float, Field(ge=0.0)] = Field(description="station on the route at `enter`, m")
-    lanes: tuple[tuple[float, int], ...]
+    start: Annotated[float, Field(ge=0.0)] = Field(
+        description="station on the route at `enter` (with a `path`: metres along it), m"
+    )
+    lanes: tuple[tuple[float, int], ...] = Field(
+        default=(), description="(from second, lane index) on the route; none with a `path`"
+    )
     change_time: Annotated[float, Field(gt=0.0)] = 3.0
     phase: Annotated[float, Field(ge=0.0, lt=1.0)] = Field(
         default=0.0, description="offset of this receiver's fixes within the period, s"
@@ -213,6 +250,39 @@ class UserPlan(BaseModel):
     lie: Lie | None = Field(
         default=None, description="this participant reports a false path (None: it does not)"
     )
+    path: tuple[PathStep, ...] | None = Field(
+        default=None,
+        description=(
+            "(segment, lane[, way]) pieces driven in order along their centre lines, instead "
+            "of the route (None: the route and `lanes`)"
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _check_path(self) -> UserPlan:
+        if self.path is None:
+            if not self.lanes:
+                raise ConfigError(f"user {self.user!r} needs `lanes` on the route, or a `path`")
+            return self
+        if not self.path:
+            raise ConfigError(f"user {self.user!r}: its path is empty")
+        clash = [
+            name
+            for name, used in (
+                ("lanes", bool(self.lanes)),
+                ("reverse", self.reverse),
+                ("along_lane", self.along_lane),
+                ("lie", self.lie is not None),
+            )
+            if used
+        ]
+        if clash:
+            raise ConfigError(
+                f"user {self.user!r} drives a path, so it cannot have {', '.join(clash)}: "
+                "the path gives its lanes and its way (a step's third element), and a path "
+                "user drives its lanes' centre lines with no along_lane and no lie"
+            )
+        return self
 
     @model_validator(mode="after")
     def _check_times(self) -> UserPlan:
@@ -233,7 +303,8 @@ class UserPlan(BaseModel):
 
 
 class Scenario(BaseModel):
-    """Users on a route of a map, sampled at `rate` Hz for `duration` seconds."""
+    """Users on a route of a map (or on paths of their own), sampled at `rate` Hz for
+    `duration` seconds."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -241,11 +312,23 @@ class Scenario(BaseModel):
     map: str = Field(
         description="path of the GeoJSON map (generated maps: a name, see laas.sim.family)"
     )
-    route: tuple[str, ...] = Field(description="segment ids, in driving order")
+    route: tuple[str, ...] = Field(
+        description="segment ids, in driving order (may be empty when every user has a path)"
+    )
     users: tuple[UserPlan, ...]
     duration: Annotated[float, Field(gt=0.0)]
     rate: Annotated[float, Field(gt=0.0)] = 1.0
     errors: ErrorModel = Field(default_factory=ErrorModel, description="the GNSS error model")
+
+    @model_validator(mode="after")
+    def _check_route(self) -> Scenario:
+        if not self.route:
+            routed = [p.user for p in self.users if p.path is None]
+            if routed:
+                raise ConfigError(
+                    f"scenario {self.name!r} has no route for users without a path: {routed}"
+                )
+        return self
 
 
 @dataclass(frozen=True, slots=True)
@@ -293,6 +376,105 @@ class _Route:
         k = int(np.searchsorted(self.starts, station, side="right")) - 1
         k = min(max(k, 0), len(self.segments) - 1)
         return self.segments[k], station - float(self.starts[k])
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """One piece of a path: a lane's centre line in its direction of travel."""
+
+    segment: Segment
+    lane: int
+    backward: bool
+    xy: np.ndarray  # (n, 2) UTM, in the direction of travel
+
+
+def _piece(hdmap: HdMap, plan: UserPlan, k: int, step: PathStep) -> _Piece:
+    """Path step k of a user, checked against the map."""
+    seg_id, lane = step[0], step[1]
+    way = step[2] if len(step) == 3 else None
+    segment = hdmap.segments.get(seg_id)
+    if segment is None:
+        raise ConfigError(
+            f"user {plan.user!r}: path step {k} names segment {seg_id!r}, which the map lacks"
+        )
+    if not 0 <= lane < len(segment.lanes):
+        raise ConfigError(
+            f"user {plan.user!r}: path step {k} names lane {lane} of segment {seg_id!r}, "
+            f"which has {len(segment.lanes)} lanes"
+        )
+    direction = segment.lanes[lane].direction
+    if way is None:
+        backward = direction == "backward"
+    elif direction in ("both", way):
+        backward = way == "backward"
+    else:
+        raise ConfigError(
+            f"user {plan.user!r}: path step {k} drives lane {lane} of segment {seg_id!r} "
+            f"{way}, but the lane runs {direction}"
+        )
+    xy = np.asarray(segment.lanes[lane].centerline.coords, dtype=np.float64)[:, :2]
+    return _Piece(segment, lane, backward, xy[::-1] if backward else xy)
+
+
+def _describe(piece: _Piece) -> str:
+    way = "backward" if piece.backward else "forward"
+    return f"({piece.segment.id!r}, lane {piece.lane}, {way})"
+
+
+class _Path:
+    """A user's path (`UserPlan.path`) as one polyline: its pieces' centre lines in order,
+    joined by straight chords where a piece does not start where the one before ends."""
+
+    def __init__(self, hdmap: HdMap, plan: UserPlan) -> None:
+        assert plan.path is not None
+        self.user = plan.user
+        self.pieces = [_piece(hdmap, plan, k, step) for k, step in enumerate(plan.path)]
+        parts: list[np.ndarray] = [self.pieces[0].xy]
+        count = len(self.pieces[0].xy)
+        ends = [(0, count - 1)]  # (first, last) vertex index of each piece
+        for k, (a, b) in enumerate(itertools.pairwise(self.pieces)):
+            gap = float(np.hypot(*(b.xy[0] - a.xy[-1])))
+            linked = b.segment.id in a.segment.successors or a.segment.id in b.segment.successors
+            if gap > PATH_JOIN_GAP and not (linked and gap <= PATH_SUCCESSOR_GAP):
+                raise ConfigError(
+                    f"user {plan.user!r}: path step {k + 1} {_describe(b)} does not connect "
+                    f"to step {k} {_describe(a)}: it starts {gap:.1f} m from where that ends "
+                    f"(at most {PATH_JOIN_GAP:g} m, or {PATH_SUCCESSOR_GAP:g} m from a "
+                    "successor or predecessor)"
+                )
+            xy = b.xy[1:] if gap < 1e-6 else b.xy
+            parts.append(xy)
+            ends.append((count - (1 if gap < 1e-6 else 0), count + len(xy) - 1))
+            count += len(xy)
+        xy = np.concatenate(parts)
+        dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        # piece k owns the path from the middle of the chord before it to that after it
+        self.owner_from = [0.0] + [
+            float(dist[a[1]] + dist[b[0]]) / 2.0 for a, b in itertools.pairwise(ends)
+        ]
+        keep = np.concatenate([[True], np.diff(dist) > 1e-9])  # no zero-length edges
+        self.xy = xy[keep]
+        self.dist = dist[keep]
+        self.length = float(self.dist[-1])
+
+    def state(self, x: float, t: float) -> tuple[float, float, str, int]:
+        """(e, n, segment id, lane) of the point x metres along the path (at time t)."""
+        if not -1e-6 <= x <= self.length + 1e-6:
+            raise ConfigError(
+                f"user {self.user!r} runs off the end of its path ({self.length:.1f} m) at "
+                f"t={t:.1f} s; shorten the scenario, slow the user down or let it leave"
+            )
+        e = float(np.interp(x, self.dist, self.xy[:, 0]))
+        n = float(np.interp(x, self.dist, self.xy[:, 1]))
+        piece = self.pieces[bisect.bisect_right(self.owner_from, x) - 1]
+        return e, n, piece.segment.id, piece.lane
+
+    def heading(self, x: float) -> float:
+        """Grid bearing of the path at x metres along it, degrees."""
+        i = int(np.searchsorted(self.dist, x, side="right")) - 1
+        i = min(max(i, 0), len(self.dist) - 2)
+        de, dn = self.xy[i + 1] - self.xy[i]
+        return math.degrees(math.atan2(de, dn)) % 360.0
 
 
 def _lateral(plan: UserPlan, t: float, offsets: np.ndarray) -> tuple[float, int]:
@@ -572,6 +754,7 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
         )
         for p in scenario.users
     }
+    paths = {p.user: _Path(hdmap, p) for p in scenario.users if p.path is not None}
     motion = _Motion(route) if any(p.along_lane for p in scenario.users) else None
     tables = {
         p.user: motion.stations(route, p, scenario.duration if p.leave is None else p.leave)
@@ -608,14 +791,23 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
             if receiver.in_gap(local):
                 continue
             table = tables.get(plan.user)
-            e, n, seg_id, lane, segment, s = _true_state(route, plan, local, table)
+            path = paths.get(plan.user)
             hi, lo = min(local + 0.1, end), max(local - 0.1, plan.enter)
-            e2, n2, *_ = _true_state(route, plan, hi, table)
-            e0, n0, *_ = _true_state(route, plan, lo, table)
+            if path is None:
+                e, n, seg_id, lane, segment, s = _true_state(route, plan, local, table)
+                e2, n2, *_ = _true_state(route, plan, hi, table)
+                e0, n0, *_ = _true_state(route, plan, lo, table)
+                facing = (segment.heading(s) + (180.0 if plan.reverse else 0.0)) % 360.0
+            else:
+                x = plan.start + distance_driven(plan, local)
+                e, n, seg_id, lane = path.state(x, local)
+                e2, n2, *_ = path.state(plan.start + distance_driven(plan, hi), hi)
+                e0, n0, *_ = path.state(plan.start + distance_driven(plan, lo), lo)
+                facing = path.heading(x)
             if math.hypot(e2 - e0, n2 - n0) > 1e-9:
                 heading = math.degrees(math.atan2(e2 - e0, n2 - n0)) % 360.0
             else:  # standing still: the way it faces
-                heading = (segment.heading(s) + (180.0 if plan.reverse else 0.0)) % 360.0
+                heading = facing
             speed = math.hypot(e2 - e0, n2 - n0) / (hi - lo)
             # what the receiver reports: the true path, or a liar's false one with the
             # false path's own heading and speed

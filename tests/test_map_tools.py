@@ -130,3 +130,24 @@ def test_import_options_are_checked_before_any_work(capsys: pytest.CaptureFixtur
     with pytest.raises(SystemExit):
         main(["map", "import", "osm", "x.osm", "--out", "y", "--bbox", "3,1,2,4"])
     assert "empty box" in capsys.readouterr().err
+
+
+def test_users_roaming_a_map_are_written_and_replayed(tmp_path: Path) -> None:
+    lane_map = str(bundled_map("melbourne-corner"))
+    out = tmp_path / "run"
+    args = ["--map", lane_map, "--users", "4", "--duration", "30", "--seed", "3"]
+    assert main(["scenario", *args, "--out", str(out)]) == 0
+    fixes = (out / "trace.jsonl").read_text().splitlines()
+    truth = [json.loads(line) for line in (out / "truth.jsonl").read_text().splitlines()]
+    assert len(fixes) == len(truth) > 30
+    assert {row["segment"] for row in truth} <= set(HdMap.load(lane_map).segments)
+    answers = tmp_path / "answers.jsonl"
+    trace = str(out / "trace.jsonl")
+    assert main(["replay", "--map", lane_map, trace, "--out", str(answers)]) == 0
+    rows = [json.loads(line) for line in answers.read_text().splitlines()]
+    assert len(rows) == len(fixes)
+    right = sum(
+        r.get("segment") == t["segment"] and r.get("lane") == t["lane"]
+        for r, t in zip(rows, truth, strict=True)
+    )
+    assert right / len(rows) > 0.5  # 8 lanes: chance is well below

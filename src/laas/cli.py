@@ -9,6 +9,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
@@ -17,6 +18,9 @@ from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
 from ldm.cli import broker_settings, wait_for_signal
+
+if TYPE_CHECKING:
+    from laas.sim.scenario import Scenario
 
 __all__ = ["main"]
 
@@ -68,12 +72,24 @@ def _cmd_replay(a: argparse.Namespace) -> int:
     return 0 if answered or not errors else 1
 
 
+def _scenario(a: argparse.Namespace) -> tuple[Scenario, HdMap]:
+    """The built-in scenario `--scenario`, or with `--map` users roaming that map."""
+    from laas.sim.scenario import get_scenario
+
+    if a.map is not None:
+        from laas.sim.roam import roam_scenario
+
+        hdmap = HdMap.load(a.map)
+        return roam_scenario(hdmap, a.seed, users=a.users, duration=a.duration), hdmap
+    scenario = get_scenario(a.scenario)
+    return scenario, HdMap.load(scenario.map)
+
+
 def _cmd_scenario(a: argparse.Namespace) -> int:
-    from laas.sim.scenario import get_scenario, simulate_with
+    from laas.sim.scenario import simulate_with
     from laas.sim.trace import format_measurement
 
-    scenario = get_scenario(a.scenario)
-    hdmap = HdMap.load(scenario.map)
+    scenario, hdmap = _scenario(a)
     trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -118,7 +134,8 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
         print(f"scenario {scenario.name}: {a.runs} seeded runs per row (seeds 0..{a.runs - 1})")
         print(format_table(rows))
     if a.plot:
-        _plots(scenario.name, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
+        hdmap = HdMap.load(scenario.map)
+        _plots(scenario, hdmap, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
     return 0
 
 
@@ -142,13 +159,19 @@ def _evaluate_suite(a: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) -> list[Path]:
+def _plots(
+    scenario: Scenario,
+    hdmap: HdMap,
+    out: Path,
+    seed: int,
+    sigma_pos: float,
+    sigma_vel: float,
+) -> list[Path]:
     from laas.sim.plots import plot_lanes_over_time, plot_traces
-    from laas.sim.scenario import get_scenario, simulate_with
+    from laas.sim.scenario import simulate_with
     from laas.sim.score import answer_trace
 
-    scenario = get_scenario(name)
-    hdmap = HdMap.load(scenario.map)
+    name = scenario.name
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
     out.mkdir(parents=True, exist_ok=True)
     paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
@@ -162,7 +185,8 @@ def _plots(name: str, out: Path, seed: int, sigma_pos: float, sigma_vel: float) 
 
 
 def _cmd_plot(a: argparse.Namespace) -> int:
-    _plots(a.scenario, Path(a.out), a.seed, a.sigma_pos, a.sigma_vel)
+    scenario, hdmap = _scenario(a)
+    _plots(scenario, hdmap, Path(a.out), a.seed, a.sigma_pos, a.sigma_vel)
     return 0
 
 
@@ -238,12 +262,11 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
     from laas.run.participants import accounts, run_participants
-    from laas.sim.scenario import get_scenario, simulate_with
+    from laas.sim.scenario import simulate_with
     from laas.sim.score import score
     from laas.sim.trace import format_answer
 
-    scenario = get_scenario(a.scenario)
-    hdmap = HdMap.load(scenario.map)
+    scenario, hdmap = _scenario(a)
     trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
     if a.list_accounts:
         print("\n".join(accounts(trace, a.account_prefix or "").values()))
@@ -398,7 +421,17 @@ def _cmd_map_show(a: argparse.Namespace) -> int:
 
 def _scenario_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated GNSS errors")
+    p.add_argument(
+        "--map",
+        help="instead: road users roaming this lane map (GeoJSON, e.g. from laas map import)",
+    )
+    p.add_argument("--users", type=int, default=10, help="with --map: road users (default 10)")
+    p.add_argument(
+        "--duration", type=float, default=120.0, help="with --map: seconds (default 120)"
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the GNSS errors (and of --map's users)"
+    )
     p.add_argument("--sigma-pos", type=float, default=1.0, help="receiver position noise, m")
     p.add_argument("--sigma-vel", type=float, default=0.25, help="receiver speed noise, m/s")
 

@@ -17,7 +17,7 @@ import pytest
 from laas.cli import main
 from laas.config import EngineConfig
 from laas.map.hdmap import HdMap
-from laas.sim.family import FAMILIES, FamilyCase, build_case, get_family
+from laas.sim.family import FAMILIES, FamilyCase, Road, build_case, get_family
 from laas.sim.scenario import (
     EPOCH_MS,
     ErrorModel,
@@ -41,6 +41,12 @@ SPEEDS = {"bicycle": (3.0, 8.0), "pedestrian": (0.8, 2.0)}
 
 
 @pytest.fixture(scope="module")
+def _road(case: FamilyCase) -> Road:
+    """A drawn family's road (map families have none)."""
+    assert case.road is not None
+    return case.road
+
+
 def cases() -> list[FamilyCase]:
     return [build_case(f, s) for f in FAMILIES for s in SEEDS]
 
@@ -104,7 +110,7 @@ def test_generated_maps_load_and_chain_their_elements(cases: list[FamilyCase]) -
             start = case.hdmap.segments[there].reference.coords[0]
             assert math.dist(end, start) < 0.01  # the elements join up
         assert case.hdmap.segments[route[-1]].successors == ()
-        lon, lat = case.road.origin
+        lon, lat = _road(case).origin
         assert -56.0 <= lat <= 70.0 and -177.0 <= lon <= 177.0
         zones.add(case.hdmap.projection.zone)
         hemispheres.add(case.hdmap.projection.south)
@@ -114,7 +120,7 @@ def test_generated_maps_load_and_chain_their_elements(cases: list[FamilyCase]) -
 def test_cross_sections_follow_the_written_rules(cases: list[FamilyCase]) -> None:
     corners = 0
     for case in cases:
-        lanes = case.road.lanes
+        lanes = _road(case).lanes
         assert 2 <= len(lanes) <= get_family(case.family).max_lanes <= 8
         types = [lane.type for lane in lanes]
         assert "driving" in types
@@ -129,10 +135,10 @@ def test_cross_sections_follow_the_written_rules(cases: list[FamilyCase]) -> Non
         driving = {lane.width for lane in lanes if lane.type == "driving"}
         assert len(driving) == 1  # one width per road
         directions = {lane.direction for lane in lanes if lane.type == "driving"}
-        assert directions == ({"forward", "backward"} if case.road.two_way else {"forward"}) or (
+        assert directions == ({"forward", "backward"} if _road(case).two_way else {"forward"}) or (
             directions == {"both"}
         )
-        corners += sum(1 for p in case.road.pieces if abs(getattr(p, "angle", 0.0)) == 90.0)
+        corners += sum(1 for p in _road(case).pieces if abs(getattr(p, "angle", 0.0)) == 90.0)
         for seg in case.hdmap.segments.values():
             assert [lane.type for lane in seg.lanes] == types
     assert corners > 0
@@ -155,7 +161,7 @@ def test_users_keep_to_lanes_of_their_kind_and_direction(cases: list[FamilyCase]
         assert 60.0 <= case.scenario.duration <= 120.0
         for p in users:
             kinds[p.kind] += 1
-            lanes = case.road.lanes
+            lanes = _road(case).lanes
             allowed = {
                 "car": {"parking"} if p.speed == 0.0 else {"driving"},
                 "bicycle": {"bicycle", "driving"},
@@ -183,7 +189,7 @@ def test_cars_change_lanes_at_the_written_rate(cases: list[FamilyCase]) -> None:
     """One change per 20-60 s where the road allows one (an overtake counts two)."""
     changes, seconds = 0, 0.0
     for case in cases:
-        lanes = case.road.lanes
+        lanes = _road(case).lanes
         for p in case.scenario.users:
             if p.kind != "car" or p.speed == 0.0:
                 continue

@@ -85,10 +85,22 @@ GNSS errors:
   accuracy    half of the receivers report one (GpsMeasurement.accuracy, the horizontal
               radius sqrt(2) sigma): logU(0.5, 2) times their own true radius (a steady
               misjudgement), times a log-normal jitter of 0.25 per fix, rounded to 0.1 m
+
+Map families: the same road users and errors on a real map (`MAP_FAMILIES`, imported
+with `laas map import` and shipped in ``maps/``). ``build_case(name, seed)`` of a map
+family draws, from one generator seeded by (crc32(name), seed):
+  errors      which drawn family's error distributions apply, p 1/3 each (urban,
+              arterial, shared), then the errors as above
+  users       their number from that family's range as above; their kinds, lanes, paths,
+              speeds and times from `laas.sim.roam.roam_scenario` (seeded by the next draw):
+              users roam the map, following successors through junctions
+  time        duration U(60, 120) s
+The map is the map: nothing about it is drawn.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import zlib
@@ -100,12 +112,21 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from laas.errors import ConfigError
+from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
 from laas.map.hdmap import Direction, HdMap, LaneType
 from laas.map.mapgen import Curve, LaneSpec, Straight, road_features_utm, track
 from laas.sim.scenario import ErrorModel, Scenario, UserPlan, distance_driven
 
-__all__ = ["FAMILIES", "FamilyCase", "FamilySpec", "Road", "build_case", "get_family"]
+__all__ = [
+    "FAMILIES",
+    "MAP_FAMILIES",
+    "FamilyCase",
+    "FamilySpec",
+    "Road",
+    "build_case",
+    "get_family",
+]
 
 Range = tuple[float, float]
 Kind = Literal["car", "bicycle", "pedestrian"]
@@ -236,21 +257,59 @@ class Road:
 
 @dataclass(frozen=True)
 class FamilyCase:
-    """One drawn scenario: the road, its map (GeoJSON and loaded), and the scenario."""
+    """One drawn scenario: the road (None on a map family's real map), its map (GeoJSON,
+    empty for a map family, and loaded), and the scenario."""
 
     family: str
     seed: int
-    road: Road
+    road: Road | None
     geojson: dict[str, Any]
     hdmap: HdMap
     scenario: Scenario
 
+    @property
+    def lanes(self) -> int:
+        """The most lanes side by side on the case's map."""
+        return max(len(segment.lanes) for segment in self.hdmap.segments.values())
+
+
+MAP_FAMILIES: dict[str, str] = {}
+"""Map families: name -> bundled map (``maps/<name>.geojson``), imported from real HD maps."""
+
+
+@functools.lru_cache(maxsize=8)
+def _real_map(name: str) -> HdMap:
+    return HdMap.load(bundled_map(MAP_FAMILIES[name]))
+
+
+def _map_case(name: str, seed: int) -> FamilyCase:
+    """A map family's case (see the module docstring)."""
+    from laas.sim.roam import roam_scenario  # roam builds on scenario, as this module does
+
+    rng = np.random.default_rng([zlib.crc32(name.encode()), seed])
+    spec = get_family(tuple(FAMILIES)[_pick(rng, (1.0, 1.0, 1.0))])
+    errors = _draw_errors(spec, rng)
+    count = round(math.exp(_u(rng, (math.log(spec.users[0]), math.log(spec.users[1])))))
+    duration = float(round(rng.uniform(60.0, 120.0)))
+    hdmap = _real_map(name)
+    scenario = roam_scenario(
+        hdmap,
+        int(rng.integers(0, 2**31)),
+        users=count,
+        duration=duration,
+        name=f"{name}-{seed}",
+        errors=errors,
+    )
+    return FamilyCase(name, seed, None, {}, hdmap, scenario)
+
 
 def build_case(family: str, seed: int) -> FamilyCase:
     """Draw scenario `seed` of `family` (reproducible; see the module docstring)."""
-    spec = get_family(family)
     if seed < 0:
         raise ConfigError(f"seed must be >= 0, got {seed}")
+    if family in MAP_FAMILIES:
+        return _map_case(family, seed)
+    spec = get_family(family)
     rng = np.random.default_rng([zlib.crc32(spec.name.encode()), seed])
     road = _draw_road(spec, rng)
     projection = UtmProjection.for_location(*road.origin)

@@ -56,6 +56,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine import Engine
+from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress, progress_printer
@@ -84,6 +85,11 @@ VARIANTS: dict[str, dict[str, object]] = {"before": {"max_user_evidence": None},
 
 def draw_liar(case: FamilyCase) -> tuple[str, Lie]:
     """The liar of a drawn case and its lie (see the module docstring)."""
+    if case.road is None:
+        raise ConfigError(
+            f"{case.family}: a liar is drawn on the drawn families' roads only "
+            "(a user roaming a real map drives a path, which cannot carry a lie yet)"
+        )
     rng = np.random.default_rng([zlib.crc32(b"liar"), zlib.crc32(case.family.encode()), case.seed])
     users = case.scenario.users
     plan = users[int(rng.integers(0, len(users)))]

@@ -38,7 +38,7 @@ from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress
-from laas.sim.family import FAMILIES, FamilyCase, build_case
+from laas.sim.family import FAMILIES, MAP_FAMILIES, FamilyCase, build_case
 from laas.sim.scenario import Trace, simulate_with
 from laas.sim.score import RunResult, answer_trace, score
 
@@ -103,6 +103,16 @@ SUITES: dict[str, Suite] = {
         name="ci",
         description="the test suite's guard: seeds 0-7 of each family (a dev subset)",
         cases=tuple((f, _DEV_SEEDS[:8]) for f in FAMILIES),
+    ),
+    "maps-dev": Suite(
+        name="maps-dev",
+        description="real imported maps: seeds 0-19 of each map family (tune on these)",
+        cases=tuple((m, _DEV_SEEDS[:20]) for m in MAP_FAMILIES),
+    ),
+    "maps-heldout": Suite(
+        name="maps-heldout",
+        description="real imported maps, held out: seeds 1000-1019 of each (never tune)",
+        cases=tuple((m, _HELDOUT_SEEDS[:20]) for m in MAP_FAMILIES),
     ),
     "smoke": Suite(
         name="smoke",
@@ -284,7 +294,7 @@ def run_case(family: str, seed: int, sigma_pos: float) -> SuiteRow:
         sigma_vel=sigma_vel_for(sigma_pos),
         users=len(case.scenario.users),
         fixes=len(trace.fixes),
-        lanes=len(case.road.lanes),
+        lanes=case.lanes,
         duration=case.scenario.duration,
         raw_aed=raw,
         methods=methods,

@@ -40,13 +40,13 @@ WIDTHS = {
 SPEEDS = {"bicycle": (3.0, 8.0), "pedestrian": (0.8, 2.0)}
 
 
-@pytest.fixture(scope="module")
 def _road(case: FamilyCase) -> Road:
     """A drawn family's road (map families have none)."""
     assert case.road is not None
     return case.road
 
 
+@pytest.fixture(scope="module")
 def cases() -> list[FamilyCase]:
     return [build_case(f, s) for f in FAMILIES for s in SEEDS]
 

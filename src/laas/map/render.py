@@ -1,9 +1,9 @@
 """Pictures of a lane map: `laas map show`.
 
 Every lane is drawn as its centre line, as wide as the lane (to the picture's scale),
-coloured by type; arrows along it show the permitted travel (one each way for
-``both``); segment ids may be written at their middle. Coordinates are UTM metres of the
-map's projection, relative to its south-west corner.
+coloured by type; arrows along a one-way lane show its direction of travel (a lane for
+both directions has none); segment ids may be written at their middle. Coordinates are
+UTM metres of the map's projection, relative to its south-west corner.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 
-from laas.map.hdmap import HdMap, Lane
+from laas.map.hdmap import HdMap
 
 __all__ = ["LANE_COLOURS", "draw_lanes", "render_map"]
 
@@ -50,26 +50,26 @@ def draw_lanes(ax: Axes, hdmap: HdMap, scale: float = 2.2, alpha: float = 0.6) -
             )
 
 
-def _arrows(ax: Axes, lane: Lane, e0: float, n0: float, size: float) -> None:
-    """Arrows along a lane in its direction(s) of travel, one every `_ARROW_EVERY` m."""
-    line = lane.centerline
-    length = line.length
-    count = max(1, int(length // _ARROW_EVERY))
-    for k in range(count):
-        s = (k + 0.5) * length / count
-        p = line.interpolate(s)
-        q = line.interpolate(min(length, s + 0.1))
-        dx, dy = q.x - p.x, q.y - p.y
-        norm = float(np.hypot(dx, dy)) or 1.0
-        dx, dy = dx / norm * size, dy / norm * size
-        signs = {"forward": (1.0,), "backward": (-1.0,), "both": (1.0, -1.0)}[lane.direction]
-        for sign in signs:
-            ax.annotate(
-                "",
-                xy=(p.x - e0 + sign * dx, p.y - n0 + sign * dy),
-                xytext=(p.x - e0, p.y - n0),
-                arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 0.4, "mutation_scale": 5},
-            )
+def _arrows(hdmap: HdMap, e0: float, n0: float, size: float) -> np.ndarray:
+    """Arrows along every one-way lane in its direction of travel, one every
+    `_ARROW_EVERY` m: rows of (x, y, dx, dy), relative to (e0, n0)."""
+    rows: list[tuple[float, float, float, float]] = []
+    for segment in hdmap.segments.values():
+        for lane in segment.lanes:
+            if lane.direction == "both":
+                continue
+            sign = 1.0 if lane.direction == "forward" else -1.0
+            line = lane.centerline
+            length = line.length
+            count = max(1, int(length // _ARROW_EVERY))
+            for k in range(count):
+                s = (k + 0.5) * length / count
+                p = line.interpolate(s)
+                q = line.interpolate(min(length, s + 0.1))
+                dx, dy = q.x - p.x, q.y - p.y
+                norm = float(np.hypot(dx, dy)) or 1.0
+                rows.append((p.x - e0, p.y - n0, sign * dx / norm * size, sign * dy / norm * size))
+    return np.array(rows).reshape(-1, 4)
 
 
 def render_map(hdmap: HdMap, path: str | Path, ids: bool = False, title: str | None = None) -> Path:
@@ -85,10 +85,11 @@ def render_map(hdmap: HdMap, path: str | Path, ids: bool = False, title: str | N
     points_per_m = 72.0 * side / max(width, height)
     draw_lanes(ax, hdmap, scale=points_per_m, alpha=0.75)
     arrow = float(np.clip(max(width, height) / 150.0, 1.0, 6.0))
-    for segment in hdmap.segments.values():
-        for lane in segment.lanes:
-            _arrows(ax, lane, x0, y0, arrow)
-        if ids:
+    arrows = _arrows(hdmap, x0, y0, arrow)
+    if len(arrows):
+        ax.quiver(*arrows.T, angles="xy", scale_units="xy", scale=1.0, width=0.0015, color="black")
+    if ids:
+        for segment in hdmap.segments.values():
             mid = segment.reference.interpolate(0.5, normalized=True)
             ax.text(mid.x - x0, mid.y - y0, segment.id, fontsize=5, ha="center", va="center")
     handles = [
@@ -103,6 +104,6 @@ def render_map(hdmap: HdMap, path: str | Path, ids: bool = False, title: str | N
     fig.tight_layout()
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=150)
+    fig.savefig(out, dpi=110)
     plt.close(fig)
     return out

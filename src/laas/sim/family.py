@@ -273,7 +273,7 @@ class FamilyCase:
         return max(len(segment.lanes) for segment in self.hdmap.segments.values())
 
 
-MAP_FAMILIES: dict[str, str] = {}
+MAP_FAMILIES: dict[str, str] = {"helsinki": "helsinki"}
 """Map families: name -> bundled map (``maps/<name>.geojson``), imported from real HD maps."""
 
 

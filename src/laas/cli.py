@@ -578,7 +578,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--origin",
         type=_origin,
-        help="LAT,LON of the map's local origin (OpenDRIVE without a geoReference)",
+        help="LAT,LON: OpenDRIVE without a geoReference: its local origin; Lanelet2: the "
+        "projection origin (default: the mean of its nodes)",
     )
     q.add_argument(
         "--bbox", type=_bbox, help="MIN_LON,MIN_LAT,MAX_LON,MAX_LAT: cut an extract (osm)"

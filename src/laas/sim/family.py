@@ -273,7 +273,11 @@ class FamilyCase:
         return max(len(segment.lanes) for segment in self.hdmap.segments.values())
 
 
-MAP_FAMILIES: dict[str, str] = {"helsinki": "helsinki"}
+MAP_FAMILIES: dict[str, str] = {
+    "karlsruhe": "karlsruhe",
+    "fabriksgatan": "fabriksgatan",
+    "helsinki": "helsinki",
+}
 """Map families: name -> bundled map (``maps/<name>.geojson``), imported from real HD maps."""
 
 

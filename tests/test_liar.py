@@ -1,7 +1,8 @@
 """A participant that lies (issue 11, item 4): the simulator's liar, and the bound the
 common-error estimate keeps against it.
 
-The bound (`laas.engine.common_error`): with K = `EngineConfig.max_user_evidence` nats,
+The bound (`laas.engine.common_error`): with K = `EngineConfig.max_user_evidence` nats
+(`LIAR_EVIDENCE_CAP`; the estimator is off by default),
 one participant moves the maximum of the common error's posterior by at most sqrt(2 K)
 standard deviations of the estimate the others make without it (5.7 at K = 16). The grid
 test checks it for lies of every size; the engine test checks what it is for: on a road
@@ -19,13 +20,14 @@ import numpy as np
 import pytest
 
 from laas import EngineConfig, HdMap
+from laas.config import LIAR_EVIDENCE_CAP
 from laas.engine.common_error import CommonError
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.family import build_case
 from laas.sim.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
 from laas.sim.scenario import ErrorModel, Lie, Scenario, Trace, UserPlan, simulate
 
-K = EngineConfig().max_user_evidence
+K = LIAR_EVIDENCE_CAP
 LANES = (
     LaneSpec("sidewalk", 2.5, "both"),
     LaneSpec("driving", 3.25, "backward"),

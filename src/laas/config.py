@@ -49,6 +49,10 @@ class Settings(BaseModel):
             raise ConfigError(f"invalid {cls.__name__}: {found}") from None
 
 
+LIAR_EVIDENCE_CAP = 16.0
+"""`EngineConfig.max_user_evidence` for a deployment that expects lying participants."""
+
+
 class EngineConfig(Settings):
     """Everything the positioning engine can be tuned by.
 
@@ -148,14 +152,16 @@ class EngineConfig(Settings):
         default=0.3, description="cell size of the common error's grid posterior, m"
     )
     max_user_evidence: Positive | None = Field(
-        default=16.0,
+        default=None,
         description=(
-            "default mode: K, nats. One participant of an area may be lying: where its own "
-            "evidence is more than K nats below its best, it is more likely that than "
-            "honest, and it counts against that value of the common error by K at most, so "
-            "it moves the estimate by at most sqrt(2 K) standard deviations of the others' "
-            "(laas.engine.common_error). 16: 19 in 20 honest receivers of the dev suite "
-            "never come that far from the true common error "
-            "(scripts/liar_deficits.py). None: every user's evidence counts in full"
+            "default mode: K, nats, or None (off, the default). With K, one participant of an "
+            "area may be lying: where its own evidence is more than K nats below its best, "
+            "it is more likely that than honest, and it counts against that value of the "
+            "common error by K at most, so it moves the estimate by at most sqrt(2 K) "
+            "standard deviations of the others' (laas.engine.common_error). "
+            "LIAR_EVIDENCE_CAP = 16 is the value to use: 19 in 20 honest receivers of the "
+            "dev suite never come that far from the true common error "
+            "(scripts/liar_deficits.py). Off by default: it costs about 1.9x the engine's "
+            "CPU per fix (docs/security.md)"
         ),
     )

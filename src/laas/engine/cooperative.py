@@ -28,7 +28,7 @@ does, exactly:
     common error log p(b) += log c(n . b)
     lanes        alpha_i(u, l) = a(u, l) (eps + N(d_i - u - o_l; 0, s^2)) / c(u)
 
-With `max_user_evidence` K set (the default), the common error is not the plain sum of
+With `max_user_evidence` K set (off by default), the common error is not the plain sum of
 every user's log c: user i's evidence so far, T_i(b) = sum_k log c_k(n_k . b), enters the
 one-liar mixture log p(b) = sum_i T_i + log(1 + sum_j e^(-K - T_j)) (common_error), so a
 participant that reports a false path moves b by at most sqrt(2 K) standard deviations

@@ -5,8 +5,8 @@ drawn (the *honest twin*), and with one of its users lying (`draw_liar`; the lie
 no random numbers, so every other fix is the same number for number). Both traces go to
 a fresh `Engine` configured as the live worker would be (`laas.sim.suite.engine_config`),
 once per engine variant (`VARIANTS`: `before`, the common error pooled from every user's
-evidence in full, as before issue 11; `after`, the default: the one-liar mixture with
-K = `EngineConfig.max_user_evidence`, see `laas.engine.common_error`). The liar's own
+evidence in full, the default; `after`, the one-liar mixture with
+K = `laas.config.LIAR_EVIDENCE_CAP`, see `laas.engine.common_error`). The liar's own
 answers are not scored: what it is told does not matter. What is, over the fixes of the
 other users (its *neighbours*) from the liar's first false fix on:
 
@@ -54,7 +54,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from laas.config import EngineConfig
+from laas.config import LIAR_EVIDENCE_CAP, EngineConfig
 from laas.engine import Engine
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
@@ -78,9 +78,12 @@ __all__ = [
     "track_answers",
 ]
 
-VARIANTS: dict[str, dict[str, object]] = {"before": {"max_user_evidence": None}, "after": {}}
+VARIANTS: dict[str, dict[str, object]] = {
+    "before": {"max_user_evidence": None},
+    "after": {"max_user_evidence": LIAR_EVIDENCE_CAP},
+}
 """Engine variants: overrides of the suite's `engine_config("default", sigma_pos)`.
-`before` is the estimator without the cap (the model before issue 11), `after` the default."""
+`before` is the estimator without the cap (the default), `after` the one-liar mixture."""
 
 
 def draw_liar(case: FamilyCase) -> tuple[str, Lie]:
@@ -351,7 +354,7 @@ def _describe(lie: dict[str, float]) -> str:
     return "drift" if lie.get("ramp") else "offset"
 
 
-BOUND = math.sqrt(2.0 * float(EngineConfig().max_user_evidence or 0.0))
+BOUND = math.sqrt(2.0 * LIAR_EVIDENCE_CAP)
 """The stated bound: sqrt(2 K) standard deviations of the others' estimate (5.7 at K = 16)."""
 
 

@@ -159,7 +159,7 @@ class EngineConfig(Settings):
             "it is more likely that than honest, and it counts against that value of the "
             "common error by K at most, so it moves the estimate by at most sqrt(2 K) "
             "standard deviations of the others' (laas.engine.common_error). "
-            "LIAR_EVIDENCE_CAP = 16 is the value to use: 19 in 20 honest receivers of the "
+            "LIAR_EVIDENCE_CAP = 16 is the value to use: 94 % of the honest receivers of the "
             "dev suite never come that far from the true common error "
             "(scripts/liar_deficits.py). Off by default: it costs about 1.9x the engine's "
             "CPU per fix (docs/security.md)"

@@ -6,10 +6,12 @@ import pytest
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
+from laas.map.bundled import bundled_map
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
-from laas.sim.scenario import hamburg_scenario, simulate
+from laas.sim.roam import roam_scenario
+from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
 from ldm.brokers import BrokerKind
 from ldm.pytest_plugin import broker_kind
@@ -63,3 +65,21 @@ def test_rotation_costs_little_accuracy(hamburg_map: HdMap) -> None:
 def test_a_worker_process_needs_a_map_file() -> None:
     with pytest.raises(ConfigError, match="is not one"):
         LocalDeployment(small_map(), worker_process=True)  # built in memory
+
+
+@pytest.mark.parametrize("name", ["karlsruhe", "fabriksgatan"])
+def test_the_live_worker_answers_on_imported_maps(name: str) -> None:
+    """Users roaming a map imported from Lanelet2 (Karlsruhe) or OpenDRIVE (fabriksgatan),
+    through the three-broker deployment, answered as offline replay answers them."""
+    hdmap = HdMap.load(bundled_map(name))
+    errors = ErrorModel(bias_east=1.0, bias_north=-1.5, sigma_pos=1.0, sigma_vel=0.25)
+    scenario = roam_scenario(hdmap, seed=2, users=6, duration=30.0, errors=errors)
+    trace = simulate(hdmap, scenario, scenario.errors, seed=2)
+    assert len(trace.fixes) > 40
+    offline = score(hdmap, trace, answer_trace(hdmap, trace, CONFIG))
+    with LocalDeployment(hdmap, CONFIG, brokers="embedded") as deployment:
+        live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
+    assert live.errors == [] and live.answered == len(trace.fixes)
+    online = score(hdmap, trace, live.answers)
+    assert abs(online.accuracy - offline.accuracy) <= 0.05
+    assert online.accuracy > 0.5

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from laas.errors import MapError
 from laas.map.bundled import bundled_map
+from laas.map.frame import Frame
 from laas.map.hdmap import HdMap, Segment
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
@@ -537,3 +538,23 @@ def test_segment_rejects_gaps_in_lane_indices(hamburg_map: HdMap) -> None:
         Segment("messe-0", [lanes[0], lanes[2]])
     with pytest.raises(MapError, match="no lanes"):
         Segment("x", [])
+
+
+@pytest.mark.parametrize("sweep", [200.0, 300.0])
+def test_the_frame_of_a_reference_that_winds_past_a_half_turn(sweep: float) -> None:
+    """Beyond about 180 degrees of turning the vertex normal lines are not in order along
+    the reference, so bisecting over them found the wrong piece (310 of 400 points of a
+    300-degree arc); every point of the curve d = const maps back to its (s, d)."""
+    radius = 30.0
+    angle = np.radians(np.arange(0.0, sweep + 0.5, 2.0))
+    frame = Frame(np.column_stack((radius * np.sin(angle), radius - radius * np.cos(angle))))
+    assert frame.winds
+    rng = np.random.default_rng(1)
+    s = rng.uniform(-5.0, frame.length + 5.0, 400)  # the extrapolated ends too
+    d = rng.uniform(-5.0, 5.0, 400)
+    xy = np.array([frame.point(float(a), float(b)) for a, b in zip(s, d, strict=True)])
+    np.testing.assert_allclose(frame.frame_array(xy), np.column_stack((s, d)), atol=1e-6)
+    for (x, y), a, b in zip(xy[:50], s[:50], d[:50], strict=True):
+        assert frame.frame(float(x), float(y)) == pytest.approx((a, b), abs=1e-6)
+    straight = Frame(np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]]))
+    assert not straight.winds  # the bisection keeps the rest

@@ -33,6 +33,7 @@ FloatArray = npt.NDArray[np.float64]
 
 MIN_PIECE = 0.01  # m: reference vertices closer than this are merged
 _U_EPS = 1e-9  # tolerance on the piece parameter u when accepting a frame solution
+_WINDING = math.radians(150.0)  # heading span beyond which the quad search tries them all
 
 
 def dedupe(coords: FloatArray, tol: float = 0.0) -> FloatArray:
@@ -95,6 +96,12 @@ class Frame:
         self._lens: list[float] = lens.tolist()
         self._t0: list[float] = t[0].tolist()
         self._t1: list[float] = t[-1].tolist()
+        # Where the reference's heading spans more than _WINDING, vertex normal lines are
+        # no longer ordered along it (a point can be past a later line and before an
+        # earlier one), so the quad is not found by bisection: every quad between two
+        # lines the point lies between is tried (`_frame_winding`).
+        heading = np.unwrap(np.arctan2(t[:, 1], t[:, 0]))
+        self.winds = bool(heading.max() - heading.min() > _WINDING)
 
     # -- scalar ------------------------------------------------------------------------------
 
@@ -134,6 +141,10 @@ class Frame:
         return best
 
     def frame(self, x: float, y: float) -> tuple[float, float]:
+        if self.winds:
+            s, d = self._frame_chunk(np.array([[x, y]], dtype=np.float64))[0]
+            return float(s), float(d)
+
         # which quad? the vertex normal lines are ordered along the reference: bisect over them
         def side(j: int) -> float:
             px, py = self._p[j]
@@ -205,6 +216,8 @@ class Frame:
         side = (xy[:, 0, None] - self.p[None, :, 0]) * self.fwd[None, :, 0] + (
             xy[:, 1, None] - self.p[None, :, 1]
         ) * self.fwd[None, :, 1]
+        if self.winds:
+            return self._frame_winding(xy, side)
         before = side[:, 0] < 0.0
         after = ~before & (side[:, -1] >= 0.0)
         i = np.clip(np.count_nonzero(side >= 0.0, axis=1) - 1, 0, n - 1)
@@ -220,8 +233,36 @@ class Frame:
         s[after], d[after] = self.length + wn @ t1, wn[:, 0] * t1[1] - wn[:, 1] * t1[0]
         return np.column_stack((s, d))
 
-    def _solve_rows(self, xy: FloatArray, i: npt.NDArray[np.intp]) -> tuple[FloatArray, FloatArray]:
-        """Solve the quad equation of :meth:`_solve` for point k in pieces i[k, :].
+    def _frame_winding(self, xy: FloatArray, side: FloatArray) -> FloatArray:
+        """:meth:`_frame_chunk` for a winding reference: the candidates are every quad
+        whose two normal lines the point lies between (side(j) >= 0 > side(j + 1)), and
+        the extrapolations before the start (side(0) < 0) and after the end
+        (side(n) >= 0); the one with the smallest |d| is the point's place."""
+        between = (side[:, :-1] >= 0.0) & (side[:, 1:] < 0.0)
+        every = np.broadcast_to(np.arange(self.pieces), (len(xy), self.pieces))
+        s, d = self._solve_rows(xy, every, between)
+        t0, t1 = self.t[0], self.t[-1]
+        w0, wn = xy - self.p[0], xy - self.p[-1]
+        ends = (
+            (side[:, 0] < 0.0, w0 @ t0, w0[:, 0] * t0[1] - w0[:, 1] * t0[0]),
+            (side[:, -1] >= 0.0, self.length + wn @ t1, wn[:, 0] * t1[1] - wn[:, 1] * t1[0]),
+        )
+        for candidate, s_end, d_end in ends:
+            take = candidate & ~(np.abs(d) <= np.abs(d_end))  # also where d is NaN
+            s, d = np.where(take, s_end, s), np.where(take, d_end, d)
+        lost = np.isnan(s)
+        if np.any(lost):
+            s[lost], d[lost] = self._search_all(xy[lost])
+        return np.column_stack((s, d))
+
+    def _solve_rows(
+        self,
+        xy: FloatArray,
+        i: npt.NDArray[np.intp],
+        allowed: npt.NDArray[np.bool_] | None = None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Solve the quad equation of :meth:`_solve` for point k in pieces i[k, :] (where
+        `allowed`, of i's shape, says so).
 
         Returns (s, d) of the valid solution with the smallest |d| per point (NaN if none).
         """
@@ -247,6 +288,8 @@ class Frame:
         best_d = np.full(len(xy), np.inf)
         for u in (r1, r2):
             ok = (u >= -_U_EPS) & (u <= 1.0 + _U_EPS)
+            if allowed is not None:
+                ok &= allowed
             uc = np.clip(np.where(ok, u, 0.0), 0.0, 1.0)
             nv = m0 + uc[..., None] * dm
             r = q - uc[..., None] * v

@@ -413,7 +413,7 @@ def _cmd_map_info(a: argparse.Namespace) -> int:
 
 
 def _cmd_map_show(a: argparse.Namespace) -> int:
-    from laas.map.render import render_map
+    from laas.sim.plots import render_map
 
     print(f"laas map show: wrote {render_map(HdMap.load(a.map), a.out, ids=a.ids)}")
     return 0

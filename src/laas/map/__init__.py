@@ -7,7 +7,6 @@ geojson    the GeoJSON lane-map reader and its validation
 mapgen     builds lane maps from a road description
 bundled    where the maps that ship with LaaS are
 summary    a map in figures (`laas map info`)
-render     a map in a picture (`laas map show`)
 importers  Lanelet2, OpenDRIVE and OpenStreetMap maps into the lane-map format
 """
 

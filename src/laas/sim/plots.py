@@ -1,4 +1,11 @@
-"""Pictures like the paper's: Fig. 3 (true traces on the lanes) and Fig. 4 (lanes over time)."""
+"""Pictures: the paper's Fig. 3 (true traces on the lanes) and Fig. 4 (lanes over time),
+and a lane map on its own (`laas map show`).
+
+A map is drawn lane by lane: each centre line as wide as the lane (to the picture's
+scale), coloured by type; arrows along a one-way lane show its direction of travel (a
+lane for both directions has none); segment ids may be written at their middle.
+Coordinates are UTM metres of the map's projection, relative to its south-west corner.
+"""
 
 from __future__ import annotations
 
@@ -9,13 +16,101 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.lines import Line2D
 
 from laas.map.hdmap import HdMap
-from laas.map.render import draw_lanes
 from laas.models import CorrectedPosition
 from laas.sim.scenario import EPOCH_MS, Trace
 
-__all__ = ["plot_lanes_over_time", "plot_traces"]
+__all__ = ["LANE_COLOURS", "draw_lanes", "plot_lanes_over_time", "plot_traces", "render_map"]
+
+LANE_COLOURS = {
+    "driving": "#9aa0a6",
+    "parking": "#c7b38a",
+    "bicycle": "#d98c8c",
+    "sidewalk": "#b5c99a",
+}
+"""Lane colour by type: grey driving, tan parking, red bicycle, green sidewalk."""
+
+_ARROW_EVERY = 40.0  # m of centre line between direction arrows
+
+
+def draw_lanes(ax: Axes, hdmap: HdMap, scale: float = 2.2, alpha: float = 0.6) -> None:
+    """Draw every lane of `hdmap` on `ax`, relative to the map's south-west corner;
+    `scale` points of line width per metre of lane width."""
+    e0, n0 = hdmap.bounds[0], hdmap.bounds[1]
+    for segment in hdmap.segments.values():
+        for lane in segment.lanes:
+            xs, ys = lane.centerline.xy
+            ax.plot(
+                np.asarray(xs) - e0,
+                np.asarray(ys) - n0,
+                color=LANE_COLOURS.get(lane.type, "grey"),
+                linewidth=max(0.3, lane.width * scale),
+                alpha=alpha,
+                solid_capstyle="butt",
+            )
+
+
+def _arrows(hdmap: HdMap, e0: float, n0: float, size: float) -> np.ndarray:
+    """Arrows along every one-way lane in its direction of travel, one every
+    `_ARROW_EVERY` m: rows of (x, y, dx, dy), relative to (e0, n0)."""
+    rows: list[tuple[float, float, float, float]] = []
+    for segment in hdmap.segments.values():
+        for lane in segment.lanes:
+            if lane.direction == "both":
+                continue
+            sign = 1.0 if lane.direction == "forward" else -1.0
+            line = lane.centerline
+            length = line.length
+            count = max(1, int(length // _ARROW_EVERY))
+            for k in range(count):
+                s = (k + 0.5) * length / count
+                p = line.interpolate(s)
+                q = line.interpolate(min(length, s + 0.1))
+                dx, dy = q.x - p.x, q.y - p.y
+                norm = float(np.hypot(dx, dy)) or 1.0
+                rows.append((p.x - e0, p.y - n0, sign * dx / norm * size, sign * dy / norm * size))
+    return np.array(rows).reshape(-1, 4)
+
+
+def render_map(hdmap: HdMap, path: str | Path, ids: bool = False, title: str | None = None) -> Path:
+    """Write a PNG of `hdmap`: lanes coloured by type, travel arrows, and with `ids` the
+    segment ids. The figure grows with the map (at most 16 inches a side)."""
+    x0, y0, x1, y1 = hdmap.bounds
+    width, height = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
+    side = float(np.clip(max(width, height) / 60.0, 6.0, 16.0))
+    fig, ax = plt.subplots(
+        figsize=(side * min(1.0, width / height) + 1.5, side * min(1.0, height / width) + 1.0)
+    )
+    # line widths in points at this figure's scale: 72 points per inch
+    points_per_m = 72.0 * side / max(width, height)
+    draw_lanes(ax, hdmap, scale=points_per_m, alpha=0.75)
+    arrow = float(np.clip(max(width, height) / 150.0, 1.0, 6.0))
+    arrows = _arrows(hdmap, x0, y0, arrow)
+    if len(arrows):
+        ax.quiver(*arrows.T, angles="xy", scale_units="xy", scale=1.0, width=0.0015, color="black")
+    if ids:
+        for segment in hdmap.segments.values():
+            mid = segment.reference.interpolate(0.5, normalized=True)
+            ax.text(mid.x - x0, mid.y - y0, segment.id, fontsize=5, ha="center", va="center")
+    handles = [
+        Line2D([], [], color=colour, linewidth=4, label=kind)
+        for kind, colour in LANE_COLOURS.items()
+    ]
+    ax.legend(handles=handles, fontsize=7, loc="best")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"easting - {x0:.0f} m (UTM zone {hdmap.projection.zone})")
+    ax.set_ylabel(f"northing - {y0:.0f} m")
+    ax.set_title(title or f"{hdmap.source}: {len(hdmap.segments)} road elements", fontsize=9)
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
 
 
 def plot_traces(hdmap: HdMap, trace: Trace, path: Path, measured: bool = True) -> Path:

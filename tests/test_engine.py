@@ -8,6 +8,7 @@ import pytest
 from laas.config import EngineConfig, Mode
 from laas.engine.engine import Engine
 from laas.map.hdmap import HdMap
+from laas.map.mapgen import LaneSpec, local_to_lonlat, road_features
 from laas.models import GpsMeasurement
 
 from .helpers import T0, fix_on, small_map
@@ -108,3 +109,41 @@ def test_distant_users_get_common_errors_of_their_own_areas() -> None:
     assert there is not here
     assert field.at(np.array([502_400.0, 5_900_100.0])) is there  # nearest centre wins
     assert len(field.areas) == 2
+
+
+def test_a_fast_car_is_not_placed_on_a_footway_beside_its_road() -> None:
+    """A footway drawn as its own element 6 m beside a road (as OpenStreetMap draws
+    them): a car's first fixes, 6 m off towards the footway, fall on the footway, and the
+    common error is not known yet. A car at 12 m/s fits the road's lanes, not the footway,
+    so the engine places it on the road (where taking the footway would also have pulled
+    the common error 6 m the wrong way)."""
+    origin = (10.0, 53.5)
+    road = road_features(
+        "road",
+        local_to_lonlat([(0.0, 0.0), (300.0, 0.0)], *origin),
+        (LaneSpec("driving", 3.25, "backward"), LaneSpec("driving", 3.25, "forward")),
+    )
+    foot = road_features(
+        "foot",
+        local_to_lonlat([(0.0, -10.0), (300.0, -10.0)], *origin),
+        (LaneSpec("sidewalk", 2.0, "both"),),
+    )
+    hdmap = HdMap.from_geojson(
+        {"type": "FeatureCollection", "features": road["features"] + foot["features"]}
+    )
+    lane = hdmap.segments["road-0"]
+    answers = []
+    for mode in ("default", "paper"):
+        engine = Engine(hdmap, EngineConfig(mode=mode))
+        answers.append(
+            [
+                engine.process(
+                    "car",
+                    fix_on(hdmap, lane, 20.0 + 12.0 * k, 1, T0 + 1000 * k, lateral=6.0, speed=12.0),
+                )
+                for k in range(5)
+            ]
+        )
+    default, paper = answers
+    assert all(a is not None and a.segment == "road-0" for a in default)
+    assert paper[0] is not None and paper[0].segment == "foot-0"  # paper mode: as located

@@ -23,6 +23,7 @@ from laas.config import EngineConfig
 from laas.engine.common_error import CommonError
 from laas.engine.lanefilter import Placement, make_lane_filter
 from laas.engine.tracking import Fix, Track, TrackUpdate
+from laas.engine.transition import direction_likelihood, speed_likelihood
 from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
@@ -96,6 +97,8 @@ class Engine:
         b, b_cov = self._lanes.correction(track.position, fix.t)
         q = track.position - b
         segment = self.map.locate(float(q[0]), float(q[1]), c.max_map_distance)
+        if segment is not None and c.mode == "default":
+            segment = self._plausible(segment, q, b_cov, track)
         self.stats.answered += 1
         if segment is None:
             self._lanes.leave(user)
@@ -103,6 +106,44 @@ class Engine:
             return self._off_map(measurement, q, track.position_cov + b_cov)
         placed = self._lanes.step(user, track, segment, fix.t)
         return self._answer(measurement, segment, placed, track)
+
+    def _plausible(
+        self, segment: Segment, q: np.ndarray, b_cov: np.ndarray, track: Track
+    ) -> Segment:
+        """The road element for a fix while the common error is uncertain.
+
+        `locate` takes the element under q = x - b, b the common error's mean; while b is
+        uncertain (sigma_b its largest standard deviation) any element within 2 sigma_b of
+        q may be the right one. Each is judged by how well its best lane fits the user's
+        motion, fit(e) = max_l D_l S_l (direction and speed of the lane's type, as the lane
+        filter judges lanes), and the located element stays unless another fits more than
+        twice as well; then the nearest such element is taken. So a car moving at 12 m/s
+        is not placed on a footway beside its road (whose evidence would pull b to the
+        footway), where the lane filter could only compare the footway's own lanes.
+        """
+        radius = 2.0 * math.sqrt(max(float(np.linalg.eigvalsh(b_cov)[-1]), 0.0))
+        radius = min(radius, self.config.max_map_distance)
+        if radius < 1.0:
+            return segment
+        near = self.map.segments_near(float(q[0]), float(q[1]), radius)
+        if len(near) < 2:
+            return segment
+        v, speed = track.velocity, track.last_fix.speed
+
+        def fit(e: Segment) -> float:
+            s_q, _ = e.frame(float(q[0]), float(q[1]))
+            along = float(v @ e.tangent(min(max(s_q, 0.0), e.length)))
+            lanes = e.lanes
+            d = direction_likelihood(tuple(lane.direction for lane in lanes), along)
+            k = speed_likelihood(tuple(lane.type for lane in lanes), speed)
+            return float(np.max(d * k))
+
+        fits = {e.id: fit(e) for e in near}
+        here = fits.get(segment.id, fit(segment))
+        best = max(fits.values())
+        if here >= 0.5 * best:
+            return segment
+        return next(e for e in near if fits[e.id] >= 0.5 * best)
 
     def expire(self, now_ms: int) -> list[str]:
         """Forget users whose last fix is older than `track_timeout`; return them."""

@@ -549,8 +549,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
     p.add_argument(
         "--suite",
-        help="run a suite of drawn scenarios instead: dev, heldout, ci or smoke "
-        "(docs/evaluation.md; --scenario, --runs and --mode do not apply)",
+        help="run a suite of drawn scenarios instead: dev, heldout, maps-dev, maps-heldout, "
+        "ci or smoke (docs/evaluation.md; --scenario, --runs and --mode do not apply)",
     )
     p.add_argument("--runs", type=int, default=20, help="seeded runs per configuration")
     p.add_argument("--mode", choices=["both", "default", "paper"], default="both")

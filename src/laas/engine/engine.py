@@ -121,13 +121,6 @@ class Engine:
         is not placed on a footway beside its road (whose evidence would pull b to the
         footway), where the lane filter could only compare the footway's own lanes.
         """
-        radius = 2.0 * math.sqrt(max(float(np.linalg.eigvalsh(b_cov)[-1]), 0.0))
-        radius = min(radius, self.config.max_map_distance)
-        if radius < 1.0:
-            return segment
-        near = self.map.segments_near(float(q[0]), float(q[1]), radius)
-        if len(near) < 2:
-            return segment
         v, speed = track.velocity, track.last_fix.speed
 
         def fit(e: Segment) -> float:
@@ -138,9 +131,16 @@ class Engine:
             k = speed_likelihood(tuple(lane.type for lane in lanes), speed)
             return float(np.max(d * k))
 
+        here = fit(segment)
+        if here >= 0.5:  # no element fits more than twice as well (fit <= 1): the usual case
+            return segment
+        radius = 2.0 * math.sqrt(max(float(np.linalg.eigvalsh(b_cov)[-1]), 0.0))
+        radius = min(radius, self.config.max_map_distance)
+        if radius < 1.0:
+            return segment
+        near = self.map.segments_near(float(q[0]), float(q[1]), radius)
         fits = {e.id: fit(e) for e in near}
-        here = fits.get(segment.id, fit(segment))
-        best = max(fits.values())
+        best = max(fits.values(), default=here)
         if here >= 0.5 * best:
             return segment
         return next(e for e in near if fits[e.id] >= 0.5 * best)

@@ -151,3 +151,13 @@ def test_users_roaming_a_map_are_written_and_replayed(tmp_path: Path) -> None:
         for r, t in zip(rows, truth, strict=True)
     )
     assert right / len(rows) > 0.5  # 8 lanes: chance is well below
+
+
+def test_unwritable_outputs_are_clear_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(MapError, match="cannot write the map"):
+        write_map(_hamburg(), tmp_path)  # a folder, not a file
+    lane_map = str(bundled_map("messe-hamburg"))
+    assert main(["map", "show", lane_map, "--out", str(tmp_path / "map.txt")]) == 2
+    assert "cannot write the picture" in capsys.readouterr().err

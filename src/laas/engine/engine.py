@@ -7,7 +7,9 @@ same answers.
 Per fix of user u at time t:
  1. Kalman-filter the fix into u's track (duplicates and stale fixes are refused).
  2. Ask the mode's lane filter for the common error b at u's place (paper mode: b = 0).
- 3. Locate u's road element with b removed; off every element, answer the corrected fix.
+ 3. Locate u's road element with b removed (default mode, while b is uncertain: a nearby
+    element whose lanes fit u's motion much better, `_plausible`); off every element,
+    answer the corrected fix.
  4. Let the lane filter place u on a lane of that element (`LaneFilter.step`).
  5. Answer with the placed position and its honest 1-sigma across and along the road.
 """
@@ -131,12 +133,14 @@ class Engine:
             k = speed_likelihood(tuple(lane.type for lane in lanes), speed)
             return float(np.max(d * k))
 
+        # sigma_b^2, the largest eigenvalue of the 2x2 covariance: (a + c)/2 + |((a - c)/2, b)|
+        a, b, c = float(b_cov[0, 0]), float(b_cov[0, 1]), float(b_cov[1, 1])
+        largest = (a + c) / 2.0 + math.hypot((a - c) / 2.0, b)
+        radius = min(2.0 * math.sqrt(max(largest, 0.0)), self.config.max_map_distance)
+        if radius < 1.0:
+            return segment
         here = fit(segment)
         if here >= 0.5:  # no element fits more than twice as well (fit <= 1): the usual case
-            return segment
-        radius = 2.0 * math.sqrt(max(float(np.linalg.eigvalsh(b_cov)[-1]), 0.0))
-        radius = min(radius, self.config.max_map_distance)
-        if radius < 1.0:
             return segment
         near = self.map.segments_near(float(q[0]), float(q[1]), radius)
         fits = {e.id: fit(e) for e in near}

@@ -142,8 +142,7 @@ class Frame:
 
     def frame(self, x: float, y: float) -> tuple[float, float]:
         if self.winds:
-            s, d = self._frame_chunk(np.array([[x, y]], dtype=np.float64))[0]
-            return float(s), float(d)
+            return self._frame_winding_scalar(x, y)
 
         # which quad? the vertex normal lines are ordered along the reference: bisect over them
         def side(j: int) -> float:
@@ -172,6 +171,33 @@ class Frame:
             return self._frame_slow(x, y)
         u, d = sol
         return self._cum[lo] + u * self._lens[lo], d
+
+    def _frame_winding_scalar(self, x: float, y: float) -> tuple[float, float]:
+        """:meth:`frame` for a winding reference, in plain floats (see `_frame_winding`)."""
+        n = self.pieces
+        sides = [
+            (x - px) * fx + (y - py) * fy
+            for (px, py), (fx, fy) in zip(self._p, self._fwd, strict=True)
+        ]
+        best: tuple[float, float] | None = None
+        for j in range(n):
+            if sides[j] >= 0.0 > sides[j + 1]:
+                sol = self._solve(j, x, y)
+                if sol is not None and (best is None or abs(sol[1]) < abs(best[1])):
+                    best = (self._cum[j] + sol[0] * self._lens[j], sol[1])
+        if sides[0] < 0.0:
+            px, py = self._p[0]
+            tx, ty = self._t0
+            d = (x - px) * ty - (y - py) * tx
+            if best is None or not abs(best[1]) <= abs(d):
+                best = ((x - px) * tx + (y - py) * ty, d)
+        if sides[n] >= 0.0:
+            px, py = self._p[n]
+            tx, ty = self._t1
+            d = (x - px) * ty - (y - py) * tx
+            if best is None or not abs(best[1]) <= abs(d):
+                best = (self.length + (x - px) * tx + (y - py) * ty, d)
+        return best if best is not None else self._frame_slow(x, y)
 
     def point(self, s: float, d: float) -> tuple[float, float]:
         n = self.pieces

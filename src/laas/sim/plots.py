@@ -20,6 +20,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 
+from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.sim.scenario import EPOCH_MS, Trace
@@ -107,9 +108,13 @@ def render_map(hdmap: HdMap, path: str | Path, ids: bool = False, title: str | N
     ax.set_title(title or f"{hdmap.source}: {len(hdmap.segments)} road elements", fontsize=9)
     fig.tight_layout()
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=110)
+    except (OSError, ValueError) as exc:  # an unwritable place, a format matplotlib lacks
+        raise ConfigError(f"{out}: cannot write the picture: {exc}") from exc
+    finally:
+        plt.close(fig)
     return out
 
 

@@ -163,8 +163,10 @@ def roam_scenario(
         raise ConfigError(f"seed must be >= 0, got {seed}")
     if users < 1:
         raise ConfigError(f"a roaming scenario needs at least one user, got {users}")
-    if not (duration > 0.0 and rate > 0.0):
-        raise ConfigError(f"duration and rate must be > 0, got {duration} s and {rate} Hz")
+    if not (0.0 < duration < math.inf and 0.0 < rate < math.inf):
+        raise ConfigError(
+            f"duration and rate must be finite and > 0, got {duration} s and {rate} Hz"
+        )
     graph = _Graph(hdmap)
     kinds = [k for k in KINDS if graph.by_type.get(KINDS[k])]
     if not kinds:

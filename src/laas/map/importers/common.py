@@ -170,21 +170,27 @@ def write_map(geojson: dict[str, Any], out: str | Path) -> None:
     new one is complete."""
     path = Path(out)
     read_geojson(geojson, source=str(path))  # raises MapError: nothing written
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # as open() would make it, not mkstemp's 0600
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise MapError(f"{path}: cannot write the map: {exc.strerror or exc}") from exc
+    try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            mask = os.umask(0)
+            os.umask(mask)
+            os.fchmod(fh.fileno(), 0o666 & ~mask)  # as open() would make it, not 0600
             json.dump(geojson, fh, separators=(",", ":"))
             fh.write("\n")
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise MapError(f"{path}: cannot write the map: {exc.strerror or exc}") from exc
         raise
 
 
-def no_lanes(source: str) -> MapError:
-    """The error of an import that found nothing to write."""
-    return MapError(f"{source}: no lanes found that LaaS can use (see the report above)")
+def no_lanes(source: str, report: ImportReport | None = None) -> MapError:
+    """The error of an import that found nothing to write, with what was left out."""
+    left = "; ".join(report.lines()[1:]) if report is not None else ""
+    return MapError(f"{source}: no lanes found that LaaS can use" + (f" ({left})" if left else ""))

@@ -1087,5 +1087,5 @@ def import_opendrive(
     builder.link_all()
     drafts = builder.drafts()
     if not drafts:
-        raise no_lanes(source)
+        raise no_lanes(source, report)
     return finish(drafts, report)

@@ -865,7 +865,7 @@ def import_osm(path: str | Path, bbox: BBox | None = None) -> ImportResult:
         layout = lane_layout(way.tags, f"way {way.id}", report)
         used.append((way, layout, runs))
     if not used:
-        raise no_lanes(str(src))
+        raise no_lanes(str(src), report)
 
     all_ll = np.concatenate([ll for _, _, runs in used for _, ll in runs])
     proj = UtmProjection.for_location(float(all_ll[:, 0].mean()), float(all_ll[:, 1].mean()))
@@ -887,7 +887,7 @@ def import_osm(path: str | Path, bbox: BBox | None = None) -> ImportResult:
             continue
         lines.append((p, lane_xy))
     if not lines:
-        raise no_lanes(str(src))
+        raise no_lanes(str(src), report)
 
     flat = np.concatenate([xy for _, lane_xy in lines for xy in lane_xy])
     lonlat = proj.to_wgs84_array(flat[:, 0], flat[:, 1])

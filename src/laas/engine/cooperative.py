@@ -64,7 +64,7 @@ from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.tracking import Track
-from laas.engine.transition import direction_likelihood, lane_transition, speed_likelihood
+from laas.engine.transition import lane_transition, motion_fit
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -122,9 +122,7 @@ class CooperativeLaneFilter(LaneFilter):
         # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
         # and its type's speeds.
         v = track.velocity
-        fit = direction_likelihood(
-            tuple(lane.direction for lane in segment.lanes), float(v @ tangent)
-        ) * speed_likelihood(tuple(lane.type for lane in segment.lanes), track.last_fix.speed)
+        fit = motion_fit(segment.lanes, float(v @ tangent), track.last_fix.speed)
         # Lane changes: announced by lateral motion beyond its own noise (2 sigma), and
         # never into a lane that does not fit the motion (its share stays in the lane).
         v_lat = float(v @ normal)

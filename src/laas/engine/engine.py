@@ -25,7 +25,7 @@ from laas.config import EngineConfig
 from laas.engine.common_error import CommonError
 from laas.engine.lanefilter import Placement, make_lane_filter
 from laas.engine.tracking import Fix, Track, TrackUpdate
-from laas.engine.transition import direction_likelihood, speed_likelihood
+from laas.engine.transition import motion_fit
 from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
@@ -128,10 +128,7 @@ class Engine:
         def fit(e: Segment) -> float:
             s_q, _ = e.frame(float(q[0]), float(q[1]))
             along = float(v @ e.tangent(min(max(s_q, 0.0), e.length)))
-            lanes = e.lanes
-            d = direction_likelihood(tuple(lane.direction for lane in lanes), along)
-            k = speed_likelihood(tuple(lane.type for lane in lanes), speed)
-            return float(np.max(d * k))
+            return float(np.max(motion_fit(e.lanes, along, speed)))
 
         # sigma_b^2, the largest eigenvalue of the 2x2 covariance: (a + c)/2 + |((a - c)/2, b)|
         a, b, c = float(b_cov[0, 0]), float(b_cov[0, 1]), float(b_cov[1, 1])

@@ -29,12 +29,17 @@ What the limits rule out is a car at speed on a sidewalk, a parking or a bicycle
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+
+from laas.map.hdmap import Lane
 
 __all__ = [
     "SPEED_LIMITS",
     "direction_likelihood",
     "lane_transition",
+    "motion_fit",
     "speed_likelihood",
 ]
 
@@ -104,3 +109,13 @@ def speed_likelihood(types: tuple[str, ...], speed: float) -> np.ndarray:
             z = min((speed - v_max) / width, 50.0)
             out[i] = floor + (1.0 - floor) / (1.0 + np.exp(z))
     return out
+
+
+def motion_fit(lanes: Sequence[Lane], along_speed: float, speed: float) -> np.ndarray:
+    """(L,) F_l = D_l S_l: how well each lane fits a user's motion, its direction against
+    the velocity along the element (`direction_likelihood`) and its type's speeds
+    (`speed_likelihood`)."""
+    directions = tuple(lane.direction for lane in lanes)
+    types = tuple(lane.type for lane in lanes)
+    fit: np.ndarray = direction_likelihood(directions, along_speed) * speed_likelihood(types, speed)
+    return fit

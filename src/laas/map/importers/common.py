@@ -105,15 +105,6 @@ class ImportReport:
             out.append(f"left out: {n} x {kind} (e.g. {named})")
         return out
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "source": self.source,
-            "segments": self.segments,
-            "lanes": self.lanes,
-            "skipped": dict(self.skipped),
-            "examples": self.examples,
-        }
-
 
 @dataclass
 class ImportResult:

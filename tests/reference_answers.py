@@ -1,0 +1,127 @@
+"""The engine's answers recorded before the speed work, to test that it changes none.
+
+Speed work (issue 13) must keep every answer: the same lane, the position within 1e-6 m.
+This module names the recorded cases, answers them with the engine as it is now, and
+writes or compares the record in `tests/data/reference-answers.npz`:
+
+    .venv/bin/python -m tests.reference_answers --record   # after a deliberate change
+    .venv/bin/python -m tests.reference_answers            # compare, print the worst
+
+Cases: both bundled scenarios in both modes, the `ci` suite's dev seeds at sigma_pos 1
+(default mode), and two dev seeds of each real-map family. Recording again is a decision
+that the answers *should* change (a model change), never a way to make a speed change pass.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from laas.config import EngineConfig
+from laas.map.hdmap import HdMap
+from laas.models import CorrectedPosition
+from laas.sim.family import MAP_FAMILIES, build_case
+from laas.sim.scenario import SCENARIOS, Trace, simulate_with
+from laas.sim.score import answer_trace
+from laas.sim.suite import engine_config, get_suite, sigma_vel_for
+
+RECORD = Path(__file__).parent / "data" / "reference-answers.npz"
+TOLERANCE_M = 1e-6
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    hdmap: HdMap
+    trace: Trace
+    config: EngineConfig
+
+
+def cases() -> list[Case]:
+    """Every recorded case, built afresh (seeded, so the same traces every time)."""
+    out: list[Case] = []
+    for name, make in SCENARIOS.items():
+        scenario = make()
+        hdmap = HdMap.load(Path(__file__).parents[1] / "maps" / f"{name}.geojson")
+        trace = simulate_with(hdmap, scenario, 0, sigma_pos=1.0, sigma_vel=0.25)
+        for mode in ("default", "paper"):
+            out.append(Case(f"{name}/{mode}", hdmap, trace, EngineConfig(mode=mode)))
+    runs = [(f, s) for f, seeds in get_suite("ci").cases for s in seeds]
+    runs += [(m, s) for m in MAP_FAMILIES for s in (0, 1)]
+    for family, seed in runs:
+        case = build_case(family, seed)
+        trace = simulate_with(case.hdmap, case.scenario, seed, sigma_pos=1.0, sigma_vel=0.25)
+        config = engine_config("default", 1.0)
+        assert config.sigma_vel == sigma_vel_for(1.0)
+        out.append(Case(f"{family}/{seed}", case.hdmap, trace, config))
+    return out
+
+
+def answer_arrays(case: Case) -> dict[str, np.ndarray]:
+    """The case's answers as arrays: UTM position, lane key, accuracy."""
+    answers = answer_trace(case.hdmap, case.trace, case.config)
+    return _arrays(case.hdmap, answers)
+
+
+def _arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, np.ndarray]:
+    n = len(answers)
+    xy = np.full((n, 2), np.nan)
+    acc = np.full((n, 2), np.nan)
+    lane = np.full(n, "", dtype=object)
+    for i, a in enumerate(answers):
+        if a is None:
+            lane[i] = "none"
+            continue
+        xy[i] = hdmap.projection.to_utm(a.longitude, a.latitude)
+        acc[i] = (a.accuracy_cross, a.accuracy_along)
+        lane[i] = f"{a.segment}:{a.lane}"
+    return {"xy": xy, "acc": acc, "lane": lane.astype(str)}
+
+
+def compare(case: Case, record: dict[str, np.ndarray]) -> tuple[int, float]:
+    """(answers on another lane, largest position difference in m) against the record."""
+    now = answer_arrays(case)
+    other = int(np.sum(now["lane"] != record["lane"]))
+    diff = np.hypot(*(now["xy"] - record["xy"]).T)
+    acc = np.abs(now["acc"] - record["acc"])
+    worst = max(float(np.nanmax(diff, initial=0.0)), float(np.nanmax(acc, initial=0.0)))
+    if not np.array_equal(np.isnan(now["xy"]), np.isnan(record["xy"])):
+        worst = float("inf")
+    return other, worst
+
+
+def load_record() -> dict[str, dict[str, np.ndarray]]:
+    with np.load(RECORD) as data:
+        names = sorted({k.rsplit("|", 1)[0] for k in data.files})
+        return {n: {f: data[f"{n}|{f}"] for f in ("xy", "acc", "lane")} for n in names}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--record", action="store_true", help="write the record anew")
+    a = parser.parse_args()
+    if a.record:
+        flat = {}
+        for case in cases():
+            for field, values in answer_arrays(case).items():
+                flat[f"{case.name}|{field}"] = values
+            print(f"recorded {case.name}: {len(case.trace.fixes)} answers", file=sys.stderr)
+        RECORD.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(RECORD, **flat)  # type: ignore[arg-type]
+        return 0
+    record = load_record()
+    bad = 0
+    for case in cases():
+        other, worst = compare(case, record[case.name])
+        ok = other == 0 and worst <= TOLERANCE_M
+        bad += not ok
+        print(f"{case.name:28s} other lanes {other:4d}  worst {worst:.2e} m  {'ok' if ok else 'DIFF'}")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -119,7 +119,8 @@ def main() -> int:
         other, worst = compare(case, record[case.name])
         ok = other == 0 and worst <= TOLERANCE_M
         bad += not ok
-        print(f"{case.name:28s} other lanes {other:4d}  worst {worst:.2e} m  {'ok' if ok else 'DIFF'}")
+        verdict = "ok" if ok else "DIFF"
+        print(f"{case.name:28s} other lanes {other:4d}  worst {worst:.2e} m  {verdict}")
     return 1 if bad else 0
 
 

@@ -18,9 +18,9 @@ from shapely import LineString, Point
 
 from laas.errors import ConfigError, MapError
 from laas.map.frame import sharpest_turn
-from laas.map.hdmap import HdMap
+from laas.map.hdmap import HdMap, Lane
 from laas.map.importers import import_map
-from laas.map.importers.common import ImportResult
+from laas.map.importers.common import ImportReport, ImportResult
 from laas.map.importers.osm import import_osm, lane_layout, parse_width
 
 DATA = Path(__file__).parent / "data" / "osm"
@@ -29,6 +29,7 @@ JUNCTION = DATA / "junction.osm"
 HELSINKI = Path(__file__).parents[1] / "maps" / "samples" / "osm" / "Helsinki.osm.pbf"
 
 BAD_TAG = "tag value not usable, default used: lanes"
+LOST = "connection lost: two road elements start at the same node"
 
 # way id -> lanes left to right: (type, direction, width m, centre offset from the way m,
 # the lane property that tells its kind or None)
@@ -165,6 +166,10 @@ def _osm_lines(path: Path) -> dict[int, np.ndarray]:
     }
 
 
+def _lanes(result: ImportResult) -> list[Lane]:
+    return [lane for seg in result.hdmap.segments.values() for lane in seg.lanes]
+
+
 @pytest.fixture(scope="module")
 def tags_map() -> ImportResult:
     return import_osm(TAGS)
@@ -262,6 +267,43 @@ def test_left_hand_traffic_by_driving_side_tag() -> None:
     ]
 
 
+@pytest.mark.parametrize(
+    ("tags", "want"),
+    [
+        # lanes = forward + backward + both_ways (the OSM wiki); a both_ways lane is one
+        # centre lane for both directions (a shared turn lane)
+        ({"lanes": "2", "lanes:both_ways": "1"}, ["both", "centre"]),  # a through lane
+        ({"lanes": "3", "lanes:both_ways": "1"}, ["backward", "centre", "forward"]),
+        ({"lanes": "5", "lanes:both_ways": "1"}, ["backward"] * 2 + ["centre"] + ["forward"] * 2),
+        ({"lanes": "1", "lanes:both_ways": "1"}, ["both"]),  # the one lane is all there is
+        ({"lanes": "2", "lanes:both_ways": "2"}, ["both", "centre"]),
+        (
+            {"lanes:forward": "1", "lanes:backward": "1", "lanes:both_ways": "1"},
+            ["backward", "centre", "forward"],
+        ),
+        ({"lanes:both_ways": "1"}, ["backward", "centre", "forward"]),  # a lane each way
+        ({"highway": "service", "lanes:both_ways": "1"}, ["both"]),  # a single track
+    ],
+)
+def test_both_ways_lanes_count_in_lanes(tags: dict[str, str], want: list[str]) -> None:
+    layout = lane_layout({"highway": "residential", **tags})
+    got = ["centre" if dict(x.properties).get("centre_lane") else x.direction for x in layout.lanes]
+    assert got == want
+    assert {x.type for x in layout.lanes} == {"driving"}
+    if "lanes" in tags:
+        assert len(layout.lanes) == int(tags["lanes"])
+
+
+def test_more_both_ways_lanes_than_lanes_is_counted() -> None:
+    report = ImportReport("test")
+    layout = lane_layout(
+        {"highway": "residential", "lanes": "1", "lanes:both_ways": "2"}, "way 9", report
+    )
+    assert [x.direction for x in layout.lanes] == ["both"]  # `lanes` is kept
+    kind = "tag value not usable, default used: lanes:both_ways"
+    assert report.skipped == {kind: 1} and report.examples[kind] == ["way 9: lanes:both_ways='2'"]
+
+
 def test_narrow_two_way_road_becomes_one_lane() -> None:
     """width=3 on a two-way street without lane tags: one lane for both directions."""
     layout = lane_layout({"highway": "residential", "width": "3"})
@@ -319,11 +361,18 @@ def test_ways_split_at_intersections_with_successors(junction_map: ImportResult)
     assert {"way301-0", "way301-1", "way303-0", "way303-1"} <= set(segs)
     assert math.isclose(segs["way301-0"].length, 100.0, abs_tol=0.1)
     assert succ["way304-0"] == {"way301-0"}  # ends where the main street starts
-    assert succ["way301-0"] == {"way301-1", "way303-1"}  # both start at C
-    assert succ["way303-0"] == {"way301-1", "way303-1"}
-    assert succ["way305-0"] == {"way301-1", "way303-1"}  # the footway ending at C
+    # the pieces that end at C name every other piece at C, however it is drawn: the ones
+    # that start there and the ones that end there too (met head on)
+    at_c = {"way301-0", "way301-1", "way303-0", "way303-1", "way305-0"}
+    for ending in ("way301-0", "way303-0", "way305-0"):  # the footway ends at C
+        assert succ[ending] == at_c - {ending}
     assert succ["way301-1"] == {"way302-0"}  # the layout changes at node 3
     assert succ["way302-0"] == succ["way303-1"] == set()
+    # way301-1 and way303-1 both start at C and cannot name each other; no way that ends
+    # at C can be turned round to change that (both run through C)
+    lost = junction_map.report.examples[LOST]
+    assert junction_map.report.skipped[LOST] == 2 and lost[0] == "node 2 (ways 301, 303)"
+    assert not any(lane.properties.get("osm_reversed") for lane in _lanes(junction_map))
     assert len(segs["way301-1"].lanes) == 4 and len(segs["way302-0"].lanes) == 4
     assert [x.type for x in segs["way301-1"].lanes] == [
         "sidewalk",
@@ -347,14 +396,23 @@ def test_short_piece_is_left_out_and_bridged(junction_map: ImportResult) -> None
     segs = junction_map.hdmap.segments
     assert "way307-1" not in segs  # the 0.5 m between the two crossings
     assert junction_map.report.skipped["piece shorter than 1 m between junctions"] == 1
-    assert set(segs["way307-0"].successors) == {"way307-2", "way308-1", "way309-1"}
+    # through the short piece to node 32, and the crossings' pieces at both nodes
+    assert set(segs["way307-0"].successors) == {
+        "way307-2",
+        "way308-0",
+        "way308-1",
+        "way309-0",
+        "way309-1",
+    }
+    assert junction_map.report.examples[LOST][1] == "node 32 (ways 307, 309)"
 
 
 def test_roundabout_and_loop_are_cut_into_open_pieces(junction_map: ImportResult) -> None:
     segs = junction_map.hdmap.segments
-    assert set(segs["way310-0"].successors) == {"way310-1"}
+    # cut at node 49, where way 311 ends: the pieces ending there name each other
+    assert set(segs["way310-0"].successors) == {"way310-1", "way311-0"}
     assert set(segs["way310-1"].successors) == {"way310-0"}
-    assert set(segs["way311-0"].successors) == {"way310-1"}
+    assert set(segs["way311-0"].successors) == {"way310-0", "way310-1"}
     # junction=roundabout implies oneway: one forward lane
     assert [(x.type, x.direction) for x in segs["way310-0"].lanes] == [("driving", "forward")]
     assert set(segs["way312-0"].successors) == {"way312-1"}
@@ -427,6 +485,95 @@ def test_missing_file_and_no_roads(tmp_path: Path) -> None:
     )
     with pytest.raises(MapError, match="no lanes found"):
         import_osm(empty)
+
+
+def _osm_file(path: Path, nodes: dict[int, tuple[float, float]], ways: list[Any]) -> Path:
+    """A hand-made OSM file: nodes at (east, north) metres from 24.95 E, 60.25 N (a local
+    approximation, fine for topology), ways as (id, node ids, tags)."""
+    lat0, lon0 = 60.25, 24.95
+    m_lat = 111_320.0
+    m_lon = m_lat * math.cos(math.radians(lat0))
+    text = ['<?xml version="1.0"?>', '<osm version="0.6">']
+    for nid, (x, y) in nodes.items():
+        text.append(f'<node id="{nid}" lat="{lat0 + y / m_lat:.8f}" lon="{lon0 + x / m_lon:.8f}"/>')
+    for wid, refs, tags in ways:
+        text.append(f'<way id="{wid}">')
+        text += [f'<nd ref="{r}"/>' for r in refs]
+        text += [f'<tag k="{k}" v="{v}"/>' for k, v in tags.items()]
+        text.append("</way>")
+    text.append("</osm>")
+    path.write_text("\n".join(text) + "\n", encoding="utf-8")
+    return path
+
+
+HEAD_ON_NODES = {
+    1: (0.0, 0.0),
+    2: (100.0, 0.0),
+    3: (200.0, 0.0),
+    4: (300.0, 0.0),
+    11: (0.0, 100.0),
+    12: (100.0, 100.0),
+    13: (200.0, 100.0),
+}
+ROAD = {"highway": "residential"}
+HEAD_ON_WAYS = [
+    (401, [1, 2], {**ROAD, "sidewalk": "right"}),
+    (402, [3, 2], {**ROAD, "sidewalk": "right"}),  # drawn the other way: meets 401 head on
+    (403, [3, 4], ROAD),  # starts where 402 starts
+    (404, [11, 12], ROAD),
+    (405, [13, 12], {**ROAD, "oneway": "yes"}),  # traffic from 13 into the two-way 404
+]
+
+
+def test_ways_drawn_head_on_are_turned_round_and_linked(tmp_path: Path) -> None:
+    """A two-way road running on into ways drawn the other way: the middle way is turned
+    round, so each follows the one before, and its lanes are the same lanes seen from
+    the other end; a oneway turned round keeps its traffic's direction."""
+    result = import_osm(_osm_file(tmp_path / "head_on.osm", HEAD_ON_NODES, HEAD_ON_WAYS))
+    segs = result.hdmap.segments
+    assert {sid: seg.successors for sid, seg in segs.items()} == {
+        "way401-0": ("way402-0",),
+        "way402-0": ("way403-0",),
+        "way403-0": (),
+        "way404-0": ("way405-0",),
+        "way405-0": (),
+    }
+    turned = {sid for sid, seg in segs.items() if seg.lanes[0].properties.get("osm_reversed")}
+    assert turned == {"way402-0", "way405-0"}
+    assert LOST not in result.report.skipped
+    assert "road element rejected by the loader" not in result.report.skipped
+
+    # way 402 alone is not turned round: the same lanes, right to left, directions flipped,
+    # and the same centre lines, reversed
+    alone = import_osm(_osm_file(tmp_path / "alone.osm", HEAD_ON_NODES, HEAD_ON_WAYS[1:2]))
+    drawn = alone.hdmap.segments["way402-0"].lanes
+    lanes = segs["way402-0"].lanes
+    assert [(x.type, x.direction) for x in drawn] == [
+        ("driving", "backward"),
+        ("driving", "forward"),
+        ("sidewalk", "both"),
+    ]
+    flip = {"forward": "backward", "backward": "forward", "both": "both"}
+    for lane, other in zip(lanes, drawn[::-1], strict=True):
+        assert (lane.type, lane.width, lane.direction) == (
+            other.type,
+            other.width,
+            flip[other.direction],
+        )
+        assert np.array_equal(
+            np.asarray(lane.centerline.coords), np.asarray(other.centerline.coords)[::-1]
+        )
+    # the sidewalk stays north of the road (way 402's right, drawn westwards)
+    assert lanes[0].centerline.centroid.y > lanes[1].centerline.centroid.y
+
+    # the oneway's traffic still runs from node 13 into node 12
+    (oneway,) = segs["way405-0"].lanes
+    assert oneway.direction == "backward"
+    xy = np.asarray(oneway.centerline.coords)
+    travel_end = xy[0]  # a backward lane is driven against the reference
+    lon, lat = result.hdmap.projection.to_wgs84(float(travel_end[0]), float(travel_end[1]))
+    node12 = _osm_lines(tmp_path / "head_on.osm")[404][-1]
+    assert math.dist((lon, lat), tuple(node12)) < 1e-6
 
 
 def test_import_map_dispatches_to_osm() -> None:

@@ -25,12 +25,49 @@ from laas.map.frame import sharpest_turn
 from laas.map.geo import UtmProjection
 from laas.map.hdmap import DIRECTIONS, LANE_TYPES, Direction, HdMap, Lane, LaneType, Segment
 
-__all__ = ["Reject", "read_geojson", "read_geojson_file"]
+__all__ = [
+    "MAX_TURN_DEG",
+    "Reject",
+    "cover_tolerance",
+    "gap_stations",
+    "gap_tolerance",
+    "read_geojson",
+    "read_geojson_file",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
 _KNOWN_PROPERTIES = frozenset({"segment", "lane", "type", "width", "direction", "successors"})
-_MAX_TURN_DEG = 60.0  # sharpest turn allowed at one vertex of a reference line
+
+# The loader's tolerances for a road element. They are public so that the importers, which
+# shape their road elements to pass these checks, use the loader's own figures.
+MAX_TURN_DEG = 60.0
+"""Sharpest turn, in degrees, allowed at one vertex of a segment's reference (lane 0)."""
+_COVER_MIN = 5.0  # m: the least station tolerance of `cover_tolerance`
+_COVER_SHARE = 0.1  # the station tolerance as a share of lane 0's length
+_GAP_MIN = 0.75  # m: the least lateral tolerance of `gap_tolerance`
+_GAP_SHARE = 0.35  # the lateral tolerance as a share of the expected spacing
+_GAP_STEP = 10.0  # m: spacing of the stations at which the lane spacing is checked
+_GAP_COUNT = 5  # the least number of such stations
+
+
+def cover_tolerance(length: float) -> float:
+    """How far (m) a lane's station range may lie beyond lane 0's ``0..length`` at either
+    end: ``max(5 m, 10 % of length)``."""
+    return max(_COVER_MIN, _COVER_SHARE * length)
+
+
+def gap_tolerance(expected: float) -> float:
+    """How far (m) the lateral distance of two neighbouring lane centres may be off
+    `expected`, the mean of their widths ``(w_k + w_k+1) / 2``: ``max(35 %, 0.75 m)``."""
+    return max(_GAP_SHARE * expected, _GAP_MIN)
+
+
+def gap_stations(length: float) -> FloatArray:
+    """The stations of lane 0 at which the lane spacing is checked: ``n = max(5, ceil(L /
+    10 m))`` equally spaced inside ``0..L``, both ends left out."""
+    count = max(_GAP_COUNT, math.ceil(length / _GAP_STEP))
+    return np.linspace(0.0, length, count + 2)[1:-1]
 
 
 def read_geojson_file(path: str | Path) -> HdMap:
@@ -62,6 +99,9 @@ def read_geojson(
     mode), a road element with a fault is left out and passed to `reject` with the
     message, and references to it are dropped from its neighbours' successors; the
     FeatureCollection itself must still be one, with at least one usable element.
+    The map's UTM zone is then the one of the elements kept, so that those elements
+    alone, with the references to left-out or unknown ones dropped, load without
+    `reject` to the same map (what ``laas.map.importers.common`` relies on).
     """
     return _build(data, source, reject)
 
@@ -260,25 +300,32 @@ def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -
                         f"successor segment {succ!r}"
                     )
     usable = [r for r in raws if r.segment not in bad]
-    if not usable:
-        raise MapError(f"{source}: no usable road element (every one was left out)")
-    all_ll = np.concatenate([r.lonlat for r in usable])
-    projection = UtmProjection.for_location(
-        float(np.mean(all_ll[:, 0])), float(np.mean(all_ll[:, 1]))
-    )
-    segments: list[Segment] = []
-    for seg_id, lanes in by_seg.items():
-        if seg_id in bad:
-            continue
-        ordered = [lanes[k] for k in range(len(lanes))]
-        try:
-            segments.append(_make_segment(source, projection, seg_id, ordered))
-        except MapError as exc:
-            fault(seg_id, exc)
+    # The map's projection is the UTM zone of the mean of its points. In the lenient mode it
+    # must be the zone of what is kept, so that a strict load of the kept elements alone (what
+    # an importer writes) builds the very same elements: where rejected elements moved the
+    # mean into another zone (a map on a zone boundary), the kept ones are built again in
+    # their own zone. Each round can only leave out more, so this ends.
+    while True:
+        if not usable:
+            raise MapError(f"{source}: no usable road element (every one was left out)")
+        projection = _projection(usable)
+        segments: list[Segment] = []
+        for seg_id, lanes in by_seg.items():
+            if seg_id in bad:
+                continue
+            ordered = [lanes[k] for k in range(len(lanes))]
+            try:
+                segments.append(_make_segment(source, projection, seg_id, ordered))
+            except MapError as exc:
+                fault(seg_id, exc)
+        if reject is None:
+            break
+        kept_raws = [r for r in usable if r.segment not in bad]
+        if len(kept_raws) == len(usable) or (kept_raws and _projection(kept_raws) == projection):
+            break
+        usable = kept_raws
     if reject is not None:
         kept = {seg.id for seg in segments}
-        if not kept:
-            raise MapError(f"{source}: no usable road element (every one was left out)")
         segments = [
             Segment(seg.id, seg.lanes, [s for s in seg.successors if s in kept])
             if any(s not in kept for s in seg.successors)
@@ -286,6 +333,12 @@ def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -
             for seg in segments
         ]
     return HdMap(segments, projection, source)
+
+
+def _projection(raws: Sequence[_RawLane]) -> UtmProjection:
+    """The UTM zone of the mean longitude and latitude of the lanes' points."""
+    all_ll = np.concatenate([r.lonlat for r in raws])
+    return UtmProjection.for_location(float(np.mean(all_ll[:, 0])), float(np.mean(all_ll[:, 1])))
 
 
 def _make_segment(
@@ -307,10 +360,10 @@ def _make_segment(
         )
     ref = raws[0]
     turn, vertex = sharpest_turn(np.asarray(lanes[0].centerline.coords))
-    if turn > _MAX_TURN_DEG:
+    if turn > MAX_TURN_DEG:
         raise MapError(
             f"{_where(source, ref.feature, seg_id, 0)}: the reference centre line turns "
-            f"by {turn:.0f} degrees at vertex {vertex} (at most {_MAX_TURN_DEG:.0f} "
+            f"by {turn:.0f} degrees at vertex {vertex} (at most {MAX_TURN_DEG:.0f} "
             "allowed; add vertices along the curve)"
         )
     successors = [s for raw in raws for s in raw.successors]
@@ -329,7 +382,7 @@ def _make_segment(
 def _check_side_by_side(source: str, seg: Segment, raws: Sequence[_RawLane]) -> None:
     """Lanes must follow the reference direction, cover it, and lie next to each other in order."""
     length = seg.length
-    tol_s = max(5.0, 0.1 * length)
+    tol_s = cover_tolerance(length)
     samples = seg._lane_samples
     for raw, sd in zip(raws, samples, strict=True):
         at = _where(source, raw.feature, seg.id, raw.index)
@@ -347,16 +400,14 @@ def _check_side_by_side(source: str, seg: Segment, raws: Sequence[_RawLane]) -> 
                 f"{at}: the lane covers stations {lo:.1f}..{hi:.1f} m of the segment, "
                 f"but lane 0 runs 0..{length:.1f} m (tolerance {tol_s:.1f} m)"
             )
-    count = max(5, math.ceil(length / 10.0))
-    stations = np.linspace(0.0, length, count + 2)[1:-1]
-    for s in stations:
+    for s in gap_stations(length):
         offsets = seg.lane_offsets(float(s))
         for k in range(len(raws) - 1):
             a, b = raws[k], raws[k + 1]
             at = _where(source, b.feature, seg.id, b.index)
             gap = float(offsets[k + 1] - offsets[k])
             expected = (a.width + b.width) / 2.0
-            tol = max(0.35 * expected, 0.75)
+            tol = gap_tolerance(expected)
             if gap <= 0.0:
                 raise MapError(
                     f"{at}: at station {s:.1f} m the lane is not to the right of lane "

@@ -6,9 +6,18 @@ lane centre lines in lon/lat grouped into road elements (segments) as
 ``maps/README.md`` describes them, and counts in an `ImportReport` what it could not
 use, by kind. `finish` then loads the drafts with the GeoJSON reader in its lenient mode:
 a road element the loader refuses is left out and reported with the loader's message
-(and the source element it came from), never written. What `write_map` writes is
-loaded once more, strictly, before it replaces the output file: an import never writes
-a map that the loader rejects, and a failed import leaves the old file as it was.
+(and the source element it came from), never written.
+
+An import never writes a map that the loader rejects, and it loads the map only once.
+What the lenient load keeps loads strictly, as it stands, to the same map: the loader
+judges each road element on its own lanes, in the map's UTM zone, which the lenient
+mode takes from the kept elements alone; and `finish` drops every successor that names
+an element left out (or none at all). So `finish` serialises the kept features once,
+and `ImportResult.write` writes that text without loading it again
+(``tests/test_map_tools.py`` loads what `finish` keeps strictly, for every kind of
+fault). `write_map`, for any other FeatureCollection, loads it strictly first. Either
+way the output file is replaced atomically: a failed write leaves the old file as it
+was.
 """
 
 from __future__ import annotations
@@ -29,7 +38,15 @@ from laas.errors import MapError
 from laas.map.geojson import read_geojson
 from laas.map.hdmap import Direction, HdMap, LaneType
 
-__all__ = ["ImportReport", "ImportResult", "LaneDraft", "feature_collection", "finish"]
+__all__ = [
+    "ImportReport",
+    "ImportResult",
+    "LaneDraft",
+    "feature_collection",
+    "finish",
+    "no_lanes",
+    "write_map",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -106,18 +123,25 @@ class ImportReport:
         return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class ImportResult:
-    """A finished import: the map as loaded, its GeoJSON, and the report."""
+    """A finished import: the map as loaded, its GeoJSON, and the report.
+
+    `text` is `geojson` serialised when it was loaded (by `finish`); `write` writes that
+    text, so what is written is what was loaded, even if `geojson` is changed later. A
+    result without `text` is loaded strictly before it is written."""
 
     hdmap: HdMap
     geojson: dict[str, Any]
     report: ImportReport
+    text: str | None = field(default=None, repr=False)
 
     def write(self, out: str | Path) -> None:
-        """Write the map to `out` (atomically: a temporary file, loaded strictly, then
-        renamed over `out`)."""
-        write_map(self.geojson, out)
+        """Write the map to `out`, atomically (a temporary file renamed over `out`)."""
+        if self.text is None:
+            write_map(self.geojson, out)
+        else:
+            _replace(Path(out), self.text)
 
 
 def feature_collection(lanes: Iterable[LaneDraft]) -> dict[str, Any]:
@@ -153,7 +177,13 @@ def finish(drafts: Iterable[LaneDraft], report: ImportReport) -> ImportResult:
     geojson = {"type": "FeatureCollection", "features": features}
     report.segments = len(kept)
     report.lanes = len(features)
-    return ImportResult(hdmap, geojson, report)
+    # What is kept loads strictly as it stands (see the module docstring), so the text is
+    # written later without a second load; JSON gives every float back exactly.
+    return ImportResult(hdmap, geojson, report, _serialise(geojson))
+
+
+def _serialise(geojson: dict[str, Any]) -> str:
+    return json.dumps(geojson, separators=(",", ":")) + "\n"
 
 
 def write_map(geojson: dict[str, Any], out: str | Path) -> None:
@@ -161,6 +191,11 @@ def write_map(geojson: dict[str, Any], out: str | Path) -> None:
     new one is complete."""
     path = Path(out)
     read_geojson(geojson, source=str(path))  # raises MapError: nothing written
+    _replace(path, _serialise(geojson))
+
+
+def _replace(path: Path, text: str) -> None:
+    """Write `text` to a temporary file beside `path`, then rename it over `path`."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -171,8 +206,7 @@ def write_map(geojson: dict[str, Any], out: str | Path) -> None:
             mask = os.umask(0)
             os.umask(mask)
             os.fchmod(fh.fileno(), 0o666 & ~mask)  # as open() would make it, not 0600
-            json.dump(geojson, fh, separators=(",", ":"))
-            fh.write("\n")
+            fh.write(text)
         os.replace(tmp, path)
     except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)

@@ -42,13 +42,14 @@ its leftmost piece looking along the reference direction. Lanelets that overlap 
 road elements of one lanelet each.
 
 Fitting the loader. Each row is checked against the loader's rules for a road element
-(``laas.map.geojson``: lane 0 turns at most 60 degrees at a vertex; every lane spans lane
-0's stations; neighbouring centres are (w_k + w_k+1) / 2 apart within max(35 %, 0.75 m)),
-with a margin. A row that fails is repaired and the rows rebuilt, until all pass or
-nothing more can be done: lane 0's sharp vertex becomes a cut; lanes that drift apart
-(a lane widening at a junction) are cut in the middle while the row is at least
-2 x :data:`MIN_SPLIT` long; shorter rows, and rows with a lane that does not span lane 0,
-are split left of the offending lane into two elements.
+(``laas.map.geojson``, whose tolerances are used by name: lane 0 turns at most
+``MAX_TURN_DEG`` = 60 degrees at a vertex; every lane spans lane 0's stations within
+``cover_tolerance``; neighbouring centres are (w_k + w_k+1) / 2 apart within
+``gap_tolerance``, max(35 %, 0.75 m)), with a margin. A row that fails is repaired and the
+rows rebuilt, until all pass or nothing more can be done: lane 0's sharp vertex becomes a
+cut; lanes that drift apart (a lane widening at a junction) are cut in the middle while
+the row is at least 2 x :data:`MIN_SPLIT` long; shorter rows, and rows with a lane that
+does not span lane 0, are split left of the offending lane into two elements.
 
 Reference direction. An element's reference is the direction of its first lanelet (lowest
 id), reversed when that makes it run on from an element already oriented (elements are
@@ -96,6 +97,8 @@ from shapely.ops import substring
 from laas.errors import ConfigError, MapError
 from laas.map.frame import MIN_PIECE as FRAME_MIN_PIECE
 from laas.map.frame import Frame, dedupe, sharpest_turn
+from laas.map.geojson import MAX_TURN_DEG as LOADER_MAX_TURN_DEG
+from laas.map.geojson import cover_tolerance, gap_stations, gap_tolerance
 from laas.map.hdmap import Direction, LaneType
 from laas.map.importers.common import ImportReport, ImportResult, LaneDraft, finish
 
@@ -146,8 +149,9 @@ MIN_LENGTH = 0.5  # m: shorter lanelet centre lines are left out
 MIN_WIDTH = 0.3  # m: narrower lanelets are left out
 MIN_PIECE = 1.0  # m: cuts closer than this to another cut or to a lanelet end are dropped
 MIN_SPLIT = 5.0  # m: rows whose lanes are not side by side are halved down to this length
-_MAX_TURN = 59.0  # degrees: sharper turns of a reference are cut (the loader allows 60)
+_MAX_TURN = LOADER_MAX_TURN_DEG - 1.0  # degrees: sharper turns of a reference are cut
 _FIT = 0.9  # share of the loader's side-by-side tolerances that rows are made to meet
+_COVER_MARGIN = 0.5  # m: rows keep this much inside the loader's station tolerance
 _MAX_ROUNDS = 40  # rounds of cutting and splitting rows
 _STEP = 1.0  # m: station spacing for widths and area depths
 _VERTEX_GAP = 0.05  # m: centre-line vertices closer than this to the previous are dropped
@@ -574,7 +578,7 @@ def _fault(lanes: Sequence[tuple[FloatArray, float]]) -> Fault | None:
     except MapError:
         return "short", 0, 0.0
     length = frame.length
-    tol_s = max(5.0, 0.1 * length) - 0.5
+    tol_s = cover_tolerance(length) - _COVER_MARGIN
     curves = [(np.array([0.0, length]), np.array([0.0, 0.0]))]
     for j, (xy, _w) in enumerate(lanes[1:], start=1):
         dense = np.asarray(shapely.segmentize(LineString(xy), _STEP).coords)[:, :2]
@@ -584,13 +588,12 @@ def _fault(lanes: Sequence[tuple[FloatArray, float]]) -> Fault | None:
             return "coverage", j, 0.0
         order = np.argsort(sd[:, 0], kind="stable")
         curves.append((sd[order, 0], sd[order, 1]))
-    count = max(5, math.ceil(length / 10.0))
-    for st in np.linspace(0.0, length, count + 2)[1:-1]:
+    for st in gap_stations(length):
         offsets = [float(np.interp(st, s_, d_)) for s_, d_ in curves]
         for k in range(len(lanes) - 1):
             gap = offsets[k + 1] - offsets[k]
             expected = (lanes[k][1] + lanes[k + 1][1]) / 2.0
-            if gap <= 0.0 or abs(gap - expected) > _FIT * max(0.35 * expected, 0.75):
+            if gap <= 0.0 or abs(gap - expected) > _FIT * gap_tolerance(expected):
                 return "gap", k + 1, float(st)
     return None
 

@@ -67,10 +67,11 @@ left out (counted).
 
 Left-out lanes in the middle (a median, a wide border) leave a gap between written
 neighbours: their centres lie further apart than the mean of their widths, and the
-loader refuses a segment where the gap exceeds its tolerance ``max(35 %, 0.75 m)``.
-Where any station's gap is more than 0.8 of that tolerance off, the piece is split
-there into side-by-side segments ``a``, ``b``, ... from the left (``road<id>-s<k>a``):
-each keeps its exact centre lines, and nothing is widened or invented.
+loader refuses a segment where the gap exceeds its tolerance ``max(35 %, 0.75 m)``
+(:func:`laas.map.geojson.gap_tolerance`). Where any station's gap is more than 0.8 of
+that tolerance off, the piece is split there into side-by-side segments ``a``, ``b``,
+... from the left (``road<id>-s<k>a``): each keeps its exact centre lines, and nothing
+is widened or invented.
 
 Direction. Right-hand traffic (``rule="RHT"``, the default): right lanes travel along s
 (``forward``), left lanes against it (``backward``); ``rule="LHT"`` mirrors this. The
@@ -114,6 +115,7 @@ from scipy.special import fresnel  # type: ignore[import-untyped]
 
 from laas.errors import MapError
 from laas.map.frame import Frame
+from laas.map.geojson import cover_tolerance, gap_tolerance
 from laas.map.hdmap import Direction, LaneType
 from laas.map.importers.common import ImportReport, ImportResult, LaneDraft, finish, no_lanes
 
@@ -128,6 +130,7 @@ MIN_SECTION = 0.1  # m: shorter laneSections are left out
 MAX_TURN_DEG = 170.0  # a segment's reference turns at most this much in all (see _pieces)
 FOLD = 0.9  # a lane at t with t * curvature >= this (inside a tight curve) is left out
 GAP_SAFETY = 0.8  # split side by side where a gap uses more than this share of the tolerance
+_COVER_SAFETY = 0.8  # share of the loader's station tolerance (`cover_tolerance`) pieces keep to
 _TABLE_STEP = 0.05  # m: arc-length table spacing for poly3 and paramPoly3
 _FRESNEL_MAX = 1000.0  # beyond this Fresnel argument a spiral is taken as its mean arc
 
@@ -700,7 +703,7 @@ def _frame_reads(x: FloatArray, y: FloatArray, t: FloatArray) -> bool:
         frame = Frame(np.column_stack([x[0], y[0]]))
     except MapError:
         return False
-    slack = 0.8 * max(5.0, 0.1 * frame.length)  # the loader allows max(5 m, 10 %)
+    slack = _COVER_SAFETY * cover_tolerance(frame.length)
     for k in range(1, len(x)):
         sd = frame.frame_array(np.column_stack([x[k], y[k]]))
         if (
@@ -823,7 +826,7 @@ class _Builder:
                     k = groups[-1][-1]
                     gap = centres[k, sl] - centres[i, sl]
                     expected = 0.5 * (mean[k] + mean[i])
-                    tol = max(0.35 * expected, 0.75)
+                    tol = gap_tolerance(expected)
                     if float(np.max(np.abs(gap - expected))) <= GAP_SAFETY * tol:
                         groups[-1].append(i)
                         continue

@@ -42,10 +42,21 @@ centre line is the mitred parallel of the piece at ``d_k`` (shapely ``offset_cur
 which keeps the direction), and the result is projected back to lon/lat. Pieces shorter
 than 1 m are left out (counted); their neighbours are linked through them.
 
-Road elements. Each piece is a segment ``way<id>-<k>`` (k counts pieces along the way),
-origin ``way <id>``, lane properties ``osm_way`` and ``highway``. Its successors are the
-pieces that start at its last node: the road elements that follow in its reference
-direction (the node order).
+Road elements. Each piece is a segment ``way<id>-<k>`` (k counts pieces along the way in
+node order), origin ``way <id>``, lane properties ``osm_way`` and ``highway``. Its
+reference direction is the way's node order, unless the way was turned round (below;
+property ``osm_reversed``). Its successors are the other pieces at the node where it
+ends, whichever way they are drawn: the road elements beyond its end, as in
+``laas.map.importers.lanelet2``. A piece drawn towards that node too (two ways meeting
+head on) is a successor, and names this one in turn; its lanes that leave the node
+carry on the traffic that arrives, so a oneway is kept to by the lanes' directions.
+
+Orientation (:func:`_orient`). Two pieces that both start at a node cannot name each
+other (nothing lies beyond either one's end there). Ways are turned round as a whole
+(each piece's lanes then read right to left, directions flipped, ``_Piece.reverse``) so
+that ways running on into each other point the same way, and each chain of them is
+oriented to leave the fewest such pairs at the junctions at its ends; those left are
+counted in the report.
 """
 
 from __future__ import annotations
@@ -66,6 +77,7 @@ from shapely import LineString
 
 from laas.errors import ConfigError, MapError
 from laas.map.geo import UtmProjection
+from laas.map.geojson import MAX_TURN_DEG as LOADER_MAX_TURN_DEG
 from laas.map.hdmap import Direction, LaneType
 from laas.map.importers import osm_defaults as defaults
 from laas.map.importers.common import ImportReport, ImportResult, LaneDraft, finish, no_lanes
@@ -78,7 +90,7 @@ BBox = tuple[float, float, float, float]
 Side = Literal["left", "right"]
 _SIDES: tuple[Side, Side] = ("left", "right")
 
-MAX_TURN_DEG = 59.0  # split a way where it turns more sharply (the loader allows 60)
+MAX_TURN_DEG = LOADER_MAX_TURN_DEG - 1.0  # split a way where it turns more sharply
 MIN_VERTEX_GAP = 0.5  # m: interior vertices closer than this to the previous are dropped
 MIN_PIECE_LENGTH = 1.0  # m: shorter pieces are left out (counted)
 
@@ -354,10 +366,21 @@ def _driving_lanes(t: _Tags, road: _Road) -> tuple[list[LaneSpec], bool]:
         direction = road.side_direction(road.kerb)
         lanes = [LaneSpec("driving", width, direction) for _ in range(n)]
     else:
+        if total is not None and centre > total:
+            # lanes = forward + backward + both_ways (the OSM wiki): no more both_ways lanes
+            # than lanes; `lanes` is the one kept
+            t.bad("lanes:both_ways", str(centre))
+            centre = total
         if fwd is None and bwd is None:
             rest = None if total is None else total - centre
             if (rest is None and cls.single_track) or (rest is not None and rest <= 1):
-                return [LaneSpec("driving", width, "both"), *_centre(centre - 1, width)], explicit
+                # At most one lane besides the both_ways lanes: one lane for both directions,
+                # beside centre - 1 (rest = 0: the both_ways lanes are all there is) or
+                # `centre` (rest = 1: lanes=2 lanes:both_ways=1 is a through lane and a turn
+                # lane) centre lanes; in all `lanes`, or max(both_ways, 1) on an untagged
+                # single track.
+                n = total if total is not None else max(centre, 1)
+                return [LaneSpec("driving", width, "both"), *_centre(n - 1, width)], explicit
             if rest is None:
                 fwd = bwd = cls.lanes
             else:
@@ -651,6 +674,21 @@ class _Piece:
     start: int = 0
     end: int = 0
     short: bool = False
+    reversed: bool = False  # the reference runs against the way's node order (`_orient`)
+
+    def reverse(self) -> None:
+        """Turn the piece round: its reference runs the other way, so its lanes are the
+        same lanes seen from the other end (right to left, directions flipped, offsets
+        negated), as when a mapper reverses a way and swaps its forward and backward tags."""
+        lanes = self.layout.lanes
+        self.layout = Layout(
+            tuple(LaneSpec(x.type, x.width, _flip(x.direction), x.properties) for x in lanes[::-1]),
+            tuple(-d for d in self.layout.offsets[::-1]),
+        )
+        self.refs = self.refs[::-1]
+        self.xy = self.xy[::-1]
+        self.start, self.end = self.end, self.start
+        self.reversed = not self.reversed
 
 
 def _runs(way: _Way, report: ImportReport, bbox: BBox | None) -> list[tuple[list[int], FloatArray]]:
@@ -769,27 +807,144 @@ def _pieces(
     return pieces
 
 
-def _successors(pieces: list[_Piece]) -> dict[str, tuple[str, ...]]:
-    """Pieces that start at each piece's end node; short (left-out) pieces are passed
-    through to what follows them."""
+def _orient(pieces: list[_Piece], report: ImportReport) -> None:
+    """Turn ways round where that links pieces that could not be linked as drawn.
+
+    A piece's successors are the pieces at the node where it ends, whichever way they are
+    drawn (`_successors`). Two pieces that both *start* at a node cannot name each other:
+    nothing lies beyond either one's end there. Turning a way round (each piece's lanes are
+    then the same lanes seen from the other end, `_Piece.reverse`) moves its start to its
+    other end. A way is turned round as a whole, so its own pieces stay linked, and the
+    links at the nodes inside it do not change: only the two nodes at its ends do.
+
+    1. Chains: ways that run on into each other at nodes where only those two meet are
+       oriented alike, one after the other, so that each such node has an end and a start.
+    2. An open chain then starts at one of its two outer nodes (junctions or dead ends)
+       and ends at the other. Chain by chain, in file order, the orientation is taken
+       that leaves fewer pairs of pieces starting at the same outer node, the chains not
+       yet seen as drawn (ties: fewer pieces turned round, then the first way as drawn).
+
+    The pairs that still start at the same node are counted in the report.
+    """
+    # units: runs of consecutive pieces of one way, turned round as a whole
+    units: list[list[int]] = []
+    for i, p in enumerate(pieces):
+        last = pieces[units[-1][-1]] if units else None
+        if last is not None and last.way is p.way and last.end == p.start:
+            units[-1].append(i)
+        else:
+            units.append([i])
+    meets: dict[int, list[tuple[int, bool]]] = {}  # node -> (unit, True where it ends there)
+    for u, members in enumerate(units):
+        for i in members:
+            meets.setdefault(pieces[i].start, []).append((u, False))
+            meets.setdefault(pieces[i].end, []).append((u, True))
+
+    def partner(u: int, node: int) -> tuple[int, bool] | None:
+        """The other way at a node where exactly two ways meet."""
+        here = meets[node]
+        if len(here) != 2 or here[0][0] == here[1][0]:
+            return None
+        return here[1] if here[0][0] == u else here[0]
+
+    turned = [False] * len(units)
+
+    def lost(node: int) -> int:
+        """Pairs of pieces that start at the node: s (s - 1) / 2."""
+        s = sum(at_end == turned[u] for u, at_end in meets[node])
+        return s * (s - 1) // 2
+
+    # 1. chains, each unit turned relative to the chain's first one
+    chains: list[list[int]] = []
+    seen: set[int] = set()
+    for first in range(len(units)):
+        if first in seen:
+            continue
+        seen.add(first)
+        chain, queue = [first], [first]
+        while queue:
+            u = queue.pop()
+            ends = ((pieces[units[u][0]].start, False), (pieces[units[u][-1]].end, True))
+            for node, at_end in ends:
+                other = partner(u, node)
+                if other is None or other[0] in seen:
+                    continue
+                k, k_at_end = other
+                # unit u ends here (as turned) => the other one must start here
+                turned[k] = k_at_end == (at_end != turned[u])
+                seen.add(k)
+                chain.append(k)
+                queue.append(k)
+        chains.append(chain)
+
+    # 2. the orientation of each chain, by the pairs that start at its outer nodes
+    def flip(chain: list[int]) -> None:
+        for u in chain:
+            turned[u] = not turned[u]
+
+    def cost(chain: list[int], outer: list[int]) -> tuple[int, int]:
+        return (
+            sum(lost(node) for node in outer),
+            sum(len(units[u]) for u in chain if turned[u]),
+        )
+
+    outers = [
+        sorted(
+            {
+                node
+                for u in chain
+                for node in (pieces[units[u][0]].start, pieces[units[u][-1]].end)
+                if partner(u, node) is None
+            }
+        )
+        for chain in chains
+    ]
+    for chain, outer in zip(chains, outers, strict=True):
+        as_is = cost(chain, outer)
+        flip(chain)
+        if not cost(chain, outer) < as_is:
+            flip(chain)
+
+    for u, members in enumerate(units):
+        if turned[u]:
+            for i in members:
+                pieces[i].reverse()
     starting: dict[int, list[_Piece]] = {}
     for p in pieces:
-        starting.setdefault(p.start, []).append(p)
+        if not p.short:
+            starting.setdefault(p.start, []).append(p)
+    for node, here in starting.items():
+        if len(here) > 1:
+            ways = ", ".join(str(w) for w in sorted({p.way.id for p in here}))
+            report.skip(
+                "connection lost: two road elements start at the same node",
+                f"node {node} (ways {ways})",
+                len(here) * (len(here) - 1) // 2,
+            )
+
+
+def _successors(pieces: list[_Piece]) -> dict[str, tuple[str, ...]]:
+    """The pieces at each piece's end node, whichever way they are drawn; short (left-out)
+    pieces are passed through to the pieces at their other node."""
+    at: dict[int, list[_Piece]] = {}
+    for p in pieces:
+        at.setdefault(p.start, []).append(p)
+        if p.end != p.start:
+            at.setdefault(p.end, []).append(p)
 
     def follow(node: int, seen: set[str]) -> list[str]:
         out: list[str] = []
-        for q in starting.get(node, []):
+        for q in at.get(node, []):
             if q.id in seen:
                 continue
             seen.add(q.id)
-            out.extend(follow(q.end, seen) if q.short else [q.id])
+            if q.short:
+                out.extend(follow(q.end if q.start == node else q.start, seen))
+            else:
+                out.append(q.id)
         return out
 
-    return {
-        p.id: tuple(dict.fromkeys(s for s in follow(p.end, {p.id}) if s != p.id))
-        for p in pieces
-        if not p.short
-    }
+    return {p.id: tuple(dict.fromkeys(follow(p.end, {p.id}))) for p in pieces if not p.short}
 
 
 def _lane_lines(piece: _Piece) -> list[FloatArray] | None:
@@ -870,6 +1025,7 @@ def import_osm(path: str | Path, bbox: BBox | None = None) -> ImportResult:
     all_ll = np.concatenate([ll for _, _, runs in used for _, ll in runs])
     proj = UtmProjection.for_location(float(all_ll[:, 0].mean()), float(all_ll[:, 1].mean()))
     pieces = _pieces(used, proj, report)
+    _orient(pieces, report)
     for p in pieces:
         if p.short:
             report.skip(
@@ -895,7 +1051,9 @@ def import_osm(path: str | Path, bbox: BBox | None = None) -> ImportResult:
     at = 0
     for p, lane_xy in lines:
         succ = successors.get(p.id, ())
-        base = {"osm_way": p.way.id, "highway": p.way.tags["highway"]}
+        base: dict[str, Any] = {"osm_way": p.way.id, "highway": p.way.tags["highway"]}
+        if p.reversed:
+            base["osm_reversed"] = True
         for k, (spec, xy) in enumerate(zip(p.layout.lanes, lane_xy, strict=True)):
             drafts.append(
                 LaneDraft(

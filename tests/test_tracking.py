@@ -57,3 +57,37 @@ def test_without_kalman_the_track_is_the_raw_fix() -> None:
     track = Track(EngineConfig(kalman=False), _fix(0.0, 0.0, 0.0))
     track.update(_fix(1.0, 13.0, 2.0))
     np.testing.assert_allclose(track.position, [13.0, 2.0])
+
+
+def test_the_track_is_filterpys_kalman_filter_to_rounding() -> None:
+    """The written-out predict and update against filterpy's own KalmanFilter and
+    Q_discrete_white_noise on the same fixes: irregular steps, turns, stops."""
+    from filterpy.common import Q_discrete_white_noise
+    from filterpy.kalman import KalmanFilter
+
+    config = EngineConfig(sigma_pos=1.5, sigma_accel=0.9)
+    rng = np.random.default_rng(11)
+    t, e, n = 0.0, 500_000.0, 5_900_000.0
+    first = _fix(t, e, n, speed=8.0, heading_deg=30.0)
+    track = Track(config, first)
+    kf = KalmanFilter(dim_x=4, dim_z=4)
+    kf.H = np.eye(4)
+    kf.x = np.array([e, n, *first.velocity]).reshape(4, 1)
+    kf.P = track._measurement_noise(first).copy()
+    for _ in range(300):
+        dt = float(rng.choice([0.1, 0.5, 1.0, 2.3]))
+        t += dt
+        speed = max(0.0, 8.0 + rng.normal(0, 3.0))
+        fix = _fix(t, e + rng.normal(0, 30), n + rng.normal(0, 30), speed, rng.uniform(0, 360))
+        assert track.update(fix) is TrackUpdate.ACCEPTED
+        f = np.eye(4)
+        f[0, 2] = f[1, 3] = dt
+        q = Q_discrete_white_noise(
+            dim=2, dt=dt, var=config.sigma_accel**2, block_size=2, order_by_dim=False
+        )
+        kf.predict(F=f, Q=q)
+        kf.update(np.array([fix.e, fix.n, *fix.velocity]), R=track._measurement_noise(fix))
+        np.testing.assert_allclose(track.position, kf.x[:2, 0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)

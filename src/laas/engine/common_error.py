@@ -78,6 +78,13 @@ import numpy as np
 __all__ = ["CommonError", "CommonErrorField", "UGrid"]
 
 _U_STEP = 0.1  # m: cell of the 1-D grid of u = n . b, well below any lane-evidence width
+# u-cells beyond the window's span that a user's fix still works on (5 m). A cell outside
+# the span is read again only once the window grows over it: by one 0.3 m cell per blur of
+# the walk (about every 4 s at the default drift), or as a user's road turns by up to 2
+# degrees under a kept table (1.2 m at the window's widest). Kept 5 m fresh, no stale cell
+# enters before the user's next fix; the recorded answers agree to 1e-12 m with it, and
+# not with 2 m (tests/reference_answers).
+_SPAN_MARGIN = 50
 _DROP = 40.0  # cells this far below the maximum in log p hold no mass worth keeping
 _BLUR_STEP = 0.05  # blur once the walk's variance since the last blur is 2 * this * res^2
 _EVIDENCE_KEEP = 60.0  # s: a user silent this long has left; its evidence joins `base`
@@ -126,6 +133,7 @@ class CommonError:
         self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
         self._cells_key: tuple[object, ...] = ()
         self._cells_idx = np.zeros((0, 0), dtype=np.intp)
+        self._cells_span = (0, 0)
         self._drift_var = drift**2
         self._pending_var = 0.0
         self.t: float | None = None
@@ -211,21 +219,33 @@ class CommonError:
             i0, i1, j0, j1 = self._win
             proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
             self._cells_key, self._cells_idx = key, self.u.index(proj)
+            self._cells_span = (int(self._cells_idx.min()), int(self._cells_idx.max()) + 1)
         return self._cells_idx
+
+    def span(self, normal: np.ndarray) -> tuple[int, int]:
+        """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
+        u = n . b whose evidence `update` reads, and where `project` has mass."""
+        self._cells(normal)
+        lo, hi = self._cells_span
+        return max(lo - _SPAN_MARGIN, 0), min(hi + _SPAN_MARGIN, self.u.size)
 
     def project(self, normal: np.ndarray) -> np.ndarray:
         """The posterior of u = n . b on the u-grid: p_u[k] = sum of p(b) over n . b in k."""
         w, idx = self.weights_and_cells(normal)
         return np.bincount(idx.ravel(), weights=w.ravel(), minlength=self.u.size)
 
-    def update(self, normal: np.ndarray, log_c: np.ndarray, user: str | None = None) -> None:
-        """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b]; in a robust
+    def update(
+        self, normal: np.ndarray, log_c: np.ndarray, user: str | None = None, lo: int = 0
+    ) -> None:
+        """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b - lo] (log_c
+        given on the u-grid from cell `lo`, covering at least `span(normal)`); in a robust
         area, as `user`'s renewed part of the one-liar mixture (module docstring)."""
         i0, i1, j0, j1 = self._win
+        cells = self._cells(normal) - lo if lo else self._cells(normal)
         if self.cap is not None and user is not None:
-            self._robust(user, log_c[self._cells(normal)])
+            self._robust(user, log_c[cells])
         else:
-            evidence = log_c[self._cells(normal)]
+            evidence = log_c[cells]
             sub = self._log[i0:i1, j0:j1] + evidence
             self._log[i0:i1, j0:j1] = sub - sub.max()
         self.updates += 1

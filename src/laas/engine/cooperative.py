@@ -138,7 +138,11 @@ class CooperativeLaneFilter(LaneFilter):
         # lasting trait of the user, not news at every fix: it counts once per
         # tau = motion_memory seconds.
         memory = min(1.0, track.dt / c.motion_memory)
-        a = (alpha @ transition) * fit**memory
+        # Only the values of u = n . b that the posterior of b still holds, [lo, hi), are
+        # worked on (`CommonError.span`): nothing else is read, by the update of b or by
+        # the answer. The rest of the user's table stays as it was.
+        lo, hi = area.span(normal)
+        a = (alpha[lo:hi] @ transition) * fit**memory
 
         # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
         # s^2 = s_lane^2 + s_rx^2 + k n'P n (s_rx: the receiver's own lasting error, which
@@ -149,7 +153,7 @@ class CooperativeLaneFilter(LaneFilter):
         s = math.sqrt(
             c.sigma_lane**2 + c.sigma_receiver**2 + k * float(normal @ track.position_cov @ normal)
         )
-        r = (d_f - area.u.values)[:, None] - offsets[None, :]
+        r = (d_f - area.u.values[lo:hi])[:, None] - offsets[None, :]
         like = _OFF_LANE + np.exp(-0.5 * (r / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
         # A receiver's errors persist from fix to fix at any rate: however often it
         # reports, its evidence counts at most once per evidence_interval seconds,
@@ -160,12 +164,12 @@ class CooperativeLaneFilter(LaneFilter):
         c_u = joint.sum(axis=1)
         # The common error: log p(b) += log c(n . b); with K = max_user_evidence, the
         # user's whole part of the one-liar mixture renewed instead (common_error).
-        area.update(normal, np.log(np.maximum(c_u, 1e-300)), user)
-        alpha = joint / np.maximum(c_u, 1e-300)[:, None]
+        area.update(normal, np.log(np.maximum(c_u, 1e-300)), user, lo)
+        alpha[lo:hi] = joint / np.maximum(c_u, 1e-300)[:, None]
         self._lanes[user] = _Lanes(segment, area, normal, alpha)
 
         # The lane: the marginal over u; the common error given that lane.
-        marginal = area.project(normal) @ alpha
+        marginal = area.project(normal)[lo:hi] @ alpha[lo:hi]
         marginal /= marginal.sum()
         lane = int(np.argmax(marginal))
         b, cov = area.conditional(normal, alpha[:, lane])

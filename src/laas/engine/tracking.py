@@ -6,7 +6,11 @@ measures the position and, from speed s and heading h, the velocity:
 
     z = [e, n, s sin h, s cos h],    z = H x + v,    H = I (4x4)
 
-filterpy's `KalmanFilter` is the only filterpy object, and it stays inside `Track`.
+The filter is filterpy's `KalmanFilter` written out for this model (predict with
+F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
+few numpy calls: filterpy's general predict and update cost about 150 us a fix, most of
+it bookkeeping, this about 20 us. `tests/test_tracking.py` holds it to filterpy's own
+`KalmanFilter` and `Q_discrete_white_noise`, which stay the reference.
 """
 
 from __future__ import annotations
@@ -16,8 +20,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
-from filterpy.kalman import KalmanFilter
 
 from laas.config import EngineConfig
 
@@ -57,8 +59,8 @@ class Track:
 
     def __init__(self, config: EngineConfig, fix: Fix) -> None:
         self._config = config
-        self._kf = KalmanFilter(dim_x=4, dim_z=4)
-        self._kf.H = np.eye(4)
+        self._x = np.zeros(4)  # [e, n, v_e, v_n]
+        self._P = np.eye(4)
         self.t = fix.t
         self.dt = 0.0
         self.last_fix = fix
@@ -81,8 +83,8 @@ class Track:
 
     def _start(self, fix: Fix) -> None:
         r = self._measurement_noise(fix)
-        self._kf.x = np.array([fix.e, fix.n, *fix.velocity]).reshape(4, 1)
-        self._kf.P = r.copy()
+        self._x = np.array([fix.e, fix.n, *fix.velocity])
+        self._P = r
         self.t = fix.t
         self.dt = 0.0
         self.last_fix = fix
@@ -101,40 +103,68 @@ class Track:
             self._start(fix)
             self.dt = dt
             return TrackUpdate.ACCEPTED
-        # x = F x,  P = F P F' + Q
-        f = np.eye(4)
-        f[0, 2] = f[1, 3] = dt
-        q = Q_discrete_white_noise(
-            dim=2, dt=dt, var=self._config.sigma_accel**2, block_size=2, order_by_dim=False
-        )
-        self._kf.predict(F=f, Q=q)
-        # K = P H' (H P H' + R)^-1,  x = x + K (z - H x),  P = (I - K H) P
-        z = np.array([fix.e, fix.n, *fix.velocity])
-        self._kf.update(z, R=self._measurement_noise(fix))
+        self._predict(dt)
+        self._update(np.array([fix.e, fix.n, *fix.velocity]), self._measurement_noise(fix))
         self.t = fix.t
         self.dt = dt
         self.last_fix = fix
         return TrackUpdate.ACCEPTED
 
+    def _predict(self, dt: float) -> None:
+        """x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]]. With P = [[A, B], [B', C]]
+        in 2x2 blocks,  F P F' = [[A + dt (B + B') + dt^2 C, B + dt C], [B' + dt C, C]],
+        and the white acceleration of variance q gives (filterpy's
+        Q_discrete_white_noise(dim=2, block_size=2))
+        Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]."""
+        x, p = self._x, self._P
+        x[:2] += dt * x[2:]
+        q = self._config.sigma_accel**2
+        a, b, c = p[:2, :2], p[:2, 2:], p[2:, 2:]
+        bc = b + dt * c
+        out = np.empty((4, 4))
+        out[:2, :2] = a + dt * (b + b.T) + dt * dt * c
+        out[:2, 2:] = bc
+        out[2:, :2] = bc.T
+        out[2:, 2:] = c
+        out[0, 0] += q * dt**4 / 4.0
+        out[1, 1] += q * dt**4 / 4.0
+        out[0, 2] += q * dt**3 / 2.0
+        out[1, 3] += q * dt**3 / 2.0
+        out[2, 0] += q * dt**3 / 2.0
+        out[3, 1] += q * dt**3 / 2.0
+        out[2, 2] += q * dt**2
+        out[3, 3] += q * dt**2
+        self._P = out
+
+    def _update(self, z: np.ndarray, r: np.ndarray) -> None:
+        """H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),
+        P = (I - K) P (I - K)' + K R K'  (Joseph's form, which stays symmetric and
+        positive; filterpy's update)."""
+        p = self._P
+        k = np.linalg.solve(p + r, p).T  # P S^-1 = (S^-1 P)', P and S symmetric
+        self._x = self._x + k @ (z - self._x)
+        i_k = np.eye(4) - k
+        self._P = i_k @ p @ i_k.T + k @ r @ k.T
+
     @property
     def position(self) -> np.ndarray:
         """(e, n) at the time of the last fix, m."""
-        return np.asarray(self._kf.x[:2, 0], dtype=float)
+        return self._x[:2].copy()
 
     @property
     def velocity(self) -> np.ndarray:
         """(v_e, v_n) at the time of the last fix, m/s."""
-        return np.asarray(self._kf.x[2:, 0], dtype=float)
+        return self._x[2:].copy()
 
     @property
     def velocity_cov(self) -> np.ndarray:
         """2x2 covariance of the velocity, m^2/s^2."""
-        return np.asarray(self._kf.P[2:, 2:], dtype=float)
+        return self._P[2:, 2:].copy()
 
     @property
     def position_cov(self) -> np.ndarray:
         """2x2 covariance of the position, m^2."""
-        return np.asarray(self._kf.P[:2, :2], dtype=float)
+        return self._P[:2, :2].copy()
 
     def position_at(self, t: float) -> np.ndarray:
         """(e, n) extrapolated to time t at constant velocity, without changing the track."""

@@ -205,6 +205,8 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_bench(a: argparse.Namespace) -> int:
     from laas.run.bench import BenchConfig, format_report, run_bench
 
+    if a.worker_only:
+        return _bench_worker_only(a)
     config = BenchConfig(
         participants=a.participants,
         rate=a.rate,
@@ -217,6 +219,22 @@ def _cmd_bench(a: argparse.Namespace) -> int:
     report = run_bench(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_report(report))
     return 0 if report.answered else 1
+
+
+def _bench_worker_only(a: argparse.Namespace) -> int:
+    from laas.run.workerbench import bench_worker, format_worker_report
+
+    if a.participants < 1 or not a.duration > 0:
+        raise ConfigError("--participants must be >= 1 and --duration > 0")
+    report = bench_worker(
+        map_name=a.map,
+        users=a.participants,
+        duration=a.duration,
+        seed=a.seed,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
+    )
+    print(json.dumps(report.as_dict(), indent=1) if a.json else format_worker_report(report))
+    return 0 if report.answered == report.fixes else 1
 
 
 def _broker(a: argparse.Namespace) -> BrokerSettings:
@@ -467,6 +485,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--processes", type=int, help="participant processes (default: 2 to 4)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument(
+        "--worker-only",
+        action="store_true",
+        help=(
+            "the worker's own code on one core, no brokers: us per fix for each stage, "
+            "against one filterpy Kalman step (--participants users roaming --map for "
+            "--duration simulated seconds)"
+        ),
+    )
+    p.add_argument("--map", default="messe-hamburg", help="with --worker-only: bundled map to roam")
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("worker", help="serve the laas service on an LDM service cluster")

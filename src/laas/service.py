@@ -111,6 +111,7 @@ class WorkerStats:
     failed: int = 0
     expired: int = 0  # pseudonyms forgotten after track_timeout of silence
     evicted: int = 0  # pseudonyms forgotten because max_pseudonyms were held
+    engine_seconds: float = 0.0  # time spent in the engine (perf_counter)
 
 
 class LaasService:
@@ -167,6 +168,7 @@ class LaasService:
             refusal = self._check_area(measurement)
         if refusal is not None:
             return refusal.model_dump()
+        started = time.perf_counter()
         try:
             answer = self.engine.process(request.pseudonym, measurement)
         except Exception:
@@ -175,6 +177,7 @@ class LaasService:
             return ErrorReply.of(
                 "internal", "the service failed on this fix; it has been logged"
             ).model_dump()
+        self.stats.engine_seconds += time.perf_counter() - started
         self._heard(request.pseudonym, measurement.timestamp / 1000.0, now)
         if answer is None:
             self.stats.refused += 1

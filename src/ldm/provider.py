@@ -244,10 +244,27 @@ class Provider(Worker[Event]):
         return peer
 
     def _input(self, msg: Message) -> None:
+        opened = self.open(msg)
+        if opened is None:
+            return
+        request, route = opened
+        try:
+            answer = self._handler(request)
+            if answer is not None:
+                self._send(route, request.pseudonym, request.correlation_id, answer)
+        except Exception:
+            with self._count:
+                self.stats.handler_errors += 1
+            log.error("%s: no reply to a request", self.name, exc_info=True)
+
+    def open(self, msg: Message) -> tuple[Request, _Reply] | None:
+        """One input message -> the decrypted request and the route of its reply; None
+        (and counted) if it is oversize, invalid, stale or a replay. The worker thread's
+        first step, apart so `laas bench --worker-only` can time it."""
         pseudonym = msg.topic.rsplit("/", 1)[-1]
         if len(msg.payload) > self.config.max_payload:
             self.stats.dropped_oversize += 1
-            return
+            return None
         try:
             env = Envelope.model_validate_json(msg.payload)
             if env.k is None:
@@ -255,17 +272,17 @@ class Provider(Worker[Event]):
             now = time.time()
             if now - env.t > self.config.max_age:
                 self.stats.dropped_stale += 1
-                return
+                return None
             peer = self._peer(env.k)
             payload = json.loads(peer.cipher.open(env.d, aad(env.c, env.t)))
             if not isinstance(payload, dict):
                 raise CryptoError("payload is not a JSON object")
         except (ValidationError, CryptoError, ValueError, RecursionError):
             self.stats.dropped_invalid += 1
-            return
+            return None
         if peer.replayed(env.c, env.t, now - self.config.max_age):
             self.stats.dropped_replay += 1
-            return
+            return None
         new = pseudonym not in self._by_pseudonym
         qos = msg.qos if self.config.data_qos is None else self.config.data_qos
         route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos)
@@ -273,24 +290,22 @@ class Provider(Worker[Event]):
         if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
         self.stats.requests += 1
-        request = Request(pseudonym, env.c, payload, env.t, new)
-        try:
-            answer = self._handler(request)
-            if answer is not None:
-                self._send(route, pseudonym, env.c, answer)
-        except Exception:
-            with self._count:
-                self.stats.handler_errors += 1
-            log.error("%s: no reply to a request", self.name, exc_info=True)
+        return Request(pseudonym, env.c, payload, env.t, new), route
 
-    def _send(
-        self, route: _Reply, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
-    ) -> None:
+    @staticmethod
+    def seal(route: _Reply, correlation_id: str, payload: Mapping[str, Any]) -> bytes:
+        """A reply's wire bytes: the payload as JSON, encrypted for its session."""
         plaintext = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
         t = time.time()
         env = Envelope(
             c=correlation_id, t=t, d=route.cipher.seal(plaintext, aad(correlation_id, t))
         )
-        self.transport.publish(topics.provider_reply(self.name, pseudonym), env.encode(), route.qos)
+        return env.encode()
+
+    def _send(
+        self, route: _Reply, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
+    ) -> None:
+        sealed = self.seal(route, correlation_id, payload)
+        self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
         with self._count:
             self.stats.replies += 1

@@ -85,6 +85,8 @@ def _arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, 
 def compare(case: Case, record: dict[str, np.ndarray]) -> tuple[int, float]:
     """(answers on another lane, largest position difference in m) against the record."""
     now = answer_arrays(case)
+    if now["lane"].shape != record["lane"].shape:  # another trace: the case itself changed
+        return len(now["lane"]), float("inf")
     other = int(np.sum(now["lane"] != record["lane"]))
     diff = np.hypot(*(now["xy"] - record["xy"]).T)
     acc = np.abs(now["acc"] - record["acc"])

@@ -15,6 +15,7 @@ from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.run.bench import ROTATION_OFF, BenchConfig, bench_scenario, format_report, run_bench
 from laas.sim.scenario import ErrorModel, simulate
+from ldm.pytest_plugin import need_mosquitto
 
 
 @pytest.mark.slow
@@ -30,7 +31,7 @@ def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> Non
         processes=2,
         privacy_speedup=50.0,
     )
-    scenario = bench_scenario(4, rate=2.0, duration=2.0)
+    scenario = bench_scenario(4, rate=2.0, duration=2.0, spread=config.spread)
     fixes = len(simulate(hamburg_map, scenario, ErrorModel(), seed=0).fixes)
     report = run_bench(config, progress=lines.append)
 
@@ -77,3 +78,35 @@ def test_bench_participants_stay_on_the_road(hamburg_map: HdMap) -> None:
 def test_bench_config_refuses_nonsense(bad: dict[str, float]) -> None:
     with pytest.raises(ConfigError):
         BenchConfig(**bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.slow
+@pytest.mark.mosquitto
+@pytest.mark.timeout(120)
+def test_bench_load_generator_answers_every_fix_of_200_participants() -> None:
+    """200 participants, each its own connection and session, on the shared client loop
+    of two processes (paced ramp, fixes on the whole second), on Mosquitto brokers that
+    `run_bench` starts on free ports: every fix is answered."""
+    need_mosquitto()
+    lines: list[str] = []
+    config = BenchConfig(
+        participants=200,
+        rate=1.0,
+        duration=5.0,
+        brokers="mosquitto",
+        processes=2,
+        connect_rate=400.0,
+        privacy=False,
+    )
+    report = run_bench(config, progress=lines.append)
+
+    assert report.brokers == "mosquitto"
+    assert report.participants == 200 and not report.spread
+    assert report.sent >= 200 * 5
+    assert report.answered == report.sent, report.errors
+    assert report.error_replies == report.lost == 0
+    assert report.worker_answered == report.sent
+    assert report.ldm.n == report.answered and report.ldm.p50 <= report.ldm.p99
+    assert report.privacy == []
+    assert any(line.startswith("  ramp: ") for line in lines)
+    assert sum("sessions open after" in line for line in lines) == 2

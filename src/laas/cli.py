@@ -215,6 +215,9 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         rotation_period=a.rotation_period,
         processes=a.processes,
         seed=a.seed,
+        connect_rate=a.connect_rate,
+        spread=a.spread,
+        privacy=not a.no_privacy,
     )
     report = run_bench(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_report(report))
@@ -485,6 +488,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--processes", type=int, help="participant processes (default: 2 to 4)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument(
+        "--connect-rate",
+        type=float,
+        default=200.0,
+        help="new participant connections per second, over all participant processes",
+    )
+    p.add_argument(
+        "--spread",
+        action="store_true",
+        help=(
+            "spread each participant's fixes over the second (default: all on the whole "
+            "second, as GNSS receivers emit them)"
+        ),
+    )
+    p.add_argument(
+        "--no-privacy",
+        action="store_true",
+        help="skip the two Hamburg rotation runs after the load",
+    )
     p.add_argument(
         "--worker-only",
         action="store_true",

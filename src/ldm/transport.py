@@ -10,6 +10,16 @@ They never block: each one converts what it got and hands it to ``sink`` (normal
 ``queue.SimpleQueue.put``); the owner's worker thread does the real work. ``publish``
 and ``subscribe`` may be called from any thread.
 
+Many connections, one thread: give ``loop=ClientLoop()`` (or call `Transport.attach`
+before `start`) and the transport has no network thread of its own; one `ClientLoop`
+thread drives the sockets of all its transports with paho's external loop
+(``loop_read``/``loop_write``/``loop_misc``) over a ``selectors`` poller (epoll), with
+the same reconnect back-off. paho's own thread waits in ``select()``, which fails for a
+file descriptor of 1024 or more (paho then reports a lost connection and retries for
+ever), and each threaded client holds three descriptors (its socket and a wake-up
+socket pair): one process cannot hold more than about 340 threaded connections.
+Callbacks then run on the loop's thread, under the same rules.
+
 Only a connection the broker has acknowledged (CONNACK) is handed a PUBLISH or a
 SUBSCRIBE from another thread. paho alone would not ensure it: on a reconnect it
 makes the new socket usable before it queues CONNECT on it, so a publish from
@@ -23,9 +33,13 @@ published on paho's thread right after the CONNACK, behind the re-subscriptions.
 from __future__ import annotations
 
 import contextlib
+import heapq
+import itertools
 import logging
+import selectors
 import socket
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,7 +51,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from ldm.config import BrokerSettings
 from ldm.errors import ConnectError
 
-__all__ = ["Connected", "Event", "Message", "Transport", "Will"]
+__all__ = ["ClientLoop", "Connected", "Event", "Message", "Transport", "Will"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +99,10 @@ def _nodelay(_client: mqtt.Client, _userdata: Any, sock: Any) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
+def _ignore_socket(_client: mqtt.Client, _userdata: Any, _sock: Any) -> None:
+    """paho's register-write callback under a `ClientLoop`, which tracks writes itself."""
+
+
 class Transport:
     """A reconnecting MQTT 3.1.1 client that feeds `Message` and `Connected` to a sink."""
 
@@ -96,6 +114,7 @@ class Transport:
         sink: Callable[[Event], None],
         name: str = "",
         will: Will | None = None,
+        loop: ClientLoop | None = None,
     ) -> None:
         self.settings = settings
         self.client_id = client_id
@@ -135,6 +154,9 @@ class Transport:
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
         self._client = client
+        self._loop: ClientLoop | None = None
+        if loop is not None:
+            self.attach(loop)
 
     # --- paho callbacks: paho's network thread, never block ---------------------------
 
@@ -149,6 +171,8 @@ class Transport:
         if reason.is_failure:
             log.warning("%s: broker refused the connection: %s", self.name, reason)
             return
+        if self._loop is not None:  # the loop's thread: the back-off starts over
+            self._loop._delay[self] = self.settings.reconnect_min
         with self._lock:  # every filter and held message is sent here, or after this
             if self._subscriptions:
                 client.subscribe(list(self._subscriptions.items()))
@@ -186,12 +210,36 @@ class Transport:
             self._subscriptions[topic_filter] = qos
             if self.connected:
                 self._client.subscribe(topic_filter, qos)
+                if self._loop is not None:
+                    self._loop._flush(self)
+
+    def set_sink(self, sink: Callable[[Event], None]) -> None:
+        """Hand events to `sink` from now on (before `start`): under a `ClientLoop`, a
+        component may take its events on the loop's thread instead of its own."""
+        if self._started:
+            raise RuntimeError(f"{self.name}: change the sink before start()")
+        self._sink = sink
+
+    def attach(self, loop: ClientLoop) -> None:
+        """Have `loop`'s thread drive this connection instead of a paho thread of its own;
+        before `start` (for a transport another object builds, such as a participant's)."""
+        if self._started:
+            raise RuntimeError(f"{self.name}: attach a transport to a loop before start()")
+        self._loop = loop
+        # With this callback set, paho never writes on the caller's thread: a publish
+        # only queues its packet, and `_publish` asks the loop to write it.
+        self._client.on_socket_register_write = _ignore_socket
+        self._client.on_socket_close = loop._socket_closing
+        self._client.user_data_set(self)  # paho hands it to `_socket_closing`
 
     def start(self, timeout: float | None = None) -> None:
         """Connect in the background; with a timeout, wait for the first connection."""
         self._started = True
         self._client.connect_async(self.settings.host, self.settings.port, self.settings.keepalive)
-        self._client.loop_start()
+        if self._loop is not None:
+            self._loop._add(self)
+        else:
+            self._client.loop_start()
         if timeout is not None and not self._connected.wait(timeout):
             self.stop()
             raise ConnectError(
@@ -215,6 +263,8 @@ class Transport:
         with self._lock:
             if self.connected:
                 info = self._client.publish(topic, payload, qos=qos, retain=retain)
+                if self._loop is not None:
+                    self._loop._flush(self)
                 ok = info.rc == mqtt.MQTT_ERR_SUCCESS or (
                     qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN  # paho re-sends it
                 )
@@ -238,6 +288,10 @@ class Transport:
     def stop(self) -> None:
         """Disconnect cleanly (no last will) and stop the network thread."""
         self._started = False
+        if self._loop is not None:
+            self._loop._remove(self, clean=True)
+            self._connected.clear()
+            return
         self._client.disconnect()
         self._client.loop_stop()
         self._connected.clear()
@@ -245,9 +299,270 @@ class Transport:
     def kill(self) -> None:
         """Drop the connection without DISCONNECT, so the broker sends the last will."""
         self._started = False
+        if self._loop is not None:
+            self._loop._remove(self, clean=False)
+            self._connected.clear()
+            return
         sock = self._client.socket()
         if sock is not None:
             with contextlib.suppress(OSError, AttributeError):
                 sock.shutdown(socket.SHUT_RDWR)  # type: ignore[attr-defined]
         self._client.loop_stop()
         self._connected.clear()
+
+
+class ClientLoop:
+    """One thread that drives the connections of many transports (paho's external loop).
+
+        loop = ClientLoop().start()
+        transports = [Transport(settings, client_id=f"c{i}", sink=..., loop=loop) ...]
+        ...                      # start, publish, subscribe and stop as usual
+        loop.stop()              # after the transports have stopped
+
+    The thread waits on a ``selectors`` poller (epoll on Linux: no limit of 1024
+    descriptors), reads and writes each ready socket with ``loop_read``/``loop_write``,
+    runs ``loop_misc`` (keep-alive) once a second, and reconnects a lost connection
+    with the transport's back-off (``reconnect_min`` doubling up to ``reconnect_max``,
+    reset on each CONNACK). A publish from any thread queues its packet in paho and
+    asks the loop, through a wake-up socket pair, to write it. Each connection costs
+    one descriptor and no thread; the callbacks of all transports run on this thread,
+    one at a time, so a slow sink delays every connection of the loop.
+    """
+
+    def __init__(self, name: str = "ldm-client-loop", misc_interval: float = 1.0) -> None:
+        self.name = name
+        self._misc_interval = misc_interval
+        self._selector = selectors.DefaultSelector()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._selector.register(self._wake_r, selectors.EVENT_READ, None)
+        self._calls: deque[Callable[[], None]] = deque()
+        self._woken = False
+        self._transports: dict[Transport, tuple[Any, int] | None] = {}
+        """Each transport -> the socket registered for it and its events (None: none)."""
+        self._delay: dict[Transport, float] = {}  # the next reconnect back-off
+        self._timers: list[tuple[float, int, Transport]] = []  # reconnects due
+        self._waiting: set[Transport] = set()  # transports with a reconnect in _timers
+        self._jobs: list[tuple[float, int, float, Callable[[], bool]]] = []  # `every`
+        self._seq = itertools.count()
+        self._running = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def __len__(self) -> int:
+        """Transports attached (started and not yet stopped)."""
+        return len(self._transports)
+
+    def start(self) -> ClientLoop:
+        self._running = True
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread; connections still open are dropped without DISCONNECT."""
+        if not self._running:
+            return
+        self._call(self._halt)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+    def __enter__(self) -> ClientLoop:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop()
+
+    # --- any thread -------------------------------------------------------------------
+
+    def every(self, interval: float, fn: Callable[[], bool]) -> None:
+        """Run `fn` on the loop's thread every `interval` s until it returns False."""
+
+        def schedule() -> None:
+            when = time.monotonic() + interval
+            heapq.heappush(self._jobs, (when, next(self._seq), interval, fn))
+
+        self._call(schedule)
+
+    def _call(self, fn: Callable[[], None]) -> None:
+        """Run `fn` on the loop's thread, soon."""
+        self._calls.append(fn)
+        if not self._woken:
+            self._woken = True
+            with contextlib.suppress(BlockingIOError, OSError):
+                self._wake_w.send(b"\0")
+
+    def _add(self, transport: Transport) -> None:
+        self._call(lambda: self._connect(transport, first=True))
+
+    def _flush(self, transport: Transport) -> None:
+        """paho queued a packet for `transport` (any thread): write it from the loop."""
+        self._call(lambda: self._write(transport))
+
+    def _remove(self, transport: Transport, *, clean: bool) -> None:
+        """Stop driving `transport`: send DISCONNECT first if `clean`; waits up to 5 s
+        unless called on the loop's thread."""
+        done = threading.Event()
+
+        def remove() -> None:
+            try:
+                self._close(transport, clean)
+            finally:
+                done.set()
+
+        if threading.current_thread() is self._thread:
+            remove()
+        elif self._running and self._thread.is_alive():
+            self._call(remove)
+            done.wait(5.0)
+
+    # --- the loop's thread ------------------------------------------------------------
+
+    def _socket_closing(self, _client: mqtt.Client, transport: Any, sock: Any) -> None:
+        # paho closes a socket only on this thread (reads, writes, keep-alive, reconnect),
+        # just before it closes it: unregister while its descriptor is still its own.
+        with contextlib.suppress(KeyError, ValueError, OSError):
+            self._selector.unregister(sock)
+        if self._transports.get(transport) is not None:
+            self._transports[transport] = None
+
+    def _halt(self) -> None:
+        self._running = False
+        for transport in list(self._transports):
+            self._close(transport, clean=False)
+
+    def _close(self, transport: Transport, clean: bool) -> None:
+        if transport not in self._transports:
+            return
+        client = transport._client
+        if clean and client.socket() is not None and transport.connected:
+            client.disconnect()
+            with contextlib.suppress(Exception):
+                client.loop_write()  # sends DISCONNECT; paho then closes the socket
+        sock = client.socket()
+        if sock is not None:
+            with contextlib.suppress(KeyError, ValueError, OSError):
+                self._selector.unregister(sock)
+            if not clean:
+                with contextlib.suppress(OSError, AttributeError):
+                    sock.shutdown(socket.SHUT_RDWR)  # type: ignore[attr-defined]
+            with contextlib.suppress(OSError):
+                sock.close()
+        self._transports.pop(transport, None)
+        self._delay.pop(transport, None)
+        self._waiting.discard(transport)
+
+    def _connect(self, transport: Transport, first: bool = False) -> None:
+        if first:
+            self._transports.setdefault(transport, None)
+            self._delay[transport] = transport.settings.reconnect_min
+        if not transport._started or transport not in self._transports:
+            return
+        try:
+            transport._client.reconnect()
+        except (OSError, ValueError) as exc:
+            log.debug("%s: could not connect: %s", transport.name, exc)
+            self._retry(transport)
+            return
+        self._write(transport)
+
+    def _retry(self, transport: Transport) -> None:
+        if transport in self._waiting:
+            return
+        self._waiting.add(transport)
+        delay = self._delay.get(transport, transport.settings.reconnect_min)
+        self._delay[transport] = min(2.0 * delay, transport.settings.reconnect_max)
+        heapq.heappush(self._timers, (time.monotonic() + delay, next(self._seq), transport))
+
+    def _write(self, transport: Transport) -> None:
+        client = transport._client
+        if client.socket() is not None and client.want_write():
+            client.loop_write()
+        self._sync(transport)
+
+    def _sync(self, transport: Transport) -> None:
+        """Register the transport's current socket for the events it needs; a lost
+        connection of a started transport is retried after its back-off."""
+        if transport not in self._transports:
+            return
+        client = transport._client
+        sock = client.socket()
+        slot = self._transports[transport]
+        if sock is None:
+            if slot is not None:
+                with contextlib.suppress(KeyError, ValueError, OSError):
+                    self._selector.unregister(slot[0])
+                self._transports[transport] = None
+            if transport._started:
+                self._retry(transport)
+            return
+        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.want_write() else 0)
+        if slot is None or slot[0] is not sock:
+            if slot is not None:
+                with contextlib.suppress(KeyError, ValueError, OSError):
+                    self._selector.unregister(slot[0])
+            self._selector.register(sock, events, transport)
+        elif slot[1] != events:
+            self._selector.modify(sock, events, transport)
+        self._transports[transport] = (sock, events)
+
+    def _run(self) -> None:
+        next_misc = time.monotonic() + self._misc_interval
+        while self._running:
+            now = time.monotonic()
+            due = min(next_misc, self._timers[0][0]) if self._timers else next_misc
+            if self._jobs:
+                due = min(due, self._jobs[0][0])
+            try:
+                ready = self._selector.select(max(0.0, due - now))
+            except OSError:
+                log.exception("%s: select failed", self.name)
+                ready = []
+            for key, mask in ready:
+                transport = key.data
+                if transport is None:
+                    with contextlib.suppress(BlockingIOError, OSError):
+                        while self._wake_r.recv(4096):
+                            pass
+                    continue
+                self._ready(transport, mask)
+            self._woken = False
+            while self._calls:
+                try:
+                    self._calls.popleft()()
+                except Exception:
+                    log.exception("%s: error in a loop call", self.name)
+            now = time.monotonic()
+            while self._timers and self._timers[0][0] <= now:
+                _, _, transport = heapq.heappop(self._timers)
+                self._waiting.discard(transport)
+                if transport._client.socket() is None:
+                    self._connect(transport)
+            while self._jobs and self._jobs[0][0] <= now:
+                _, _, interval, job = heapq.heappop(self._jobs)
+                try:
+                    again = job()
+                except Exception:
+                    log.exception("%s: error in a periodic call", self.name)
+                    again = True
+                if again:
+                    heapq.heappush(self._jobs, (now + interval, next(self._seq), interval, job))
+            if now >= next_misc:
+                next_misc = now + self._misc_interval
+                for transport in list(self._transports):
+                    if transport._client.socket() is not None:
+                        transport._client.loop_misc()
+                        self._sync(transport)
+        self._selector.close()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def _ready(self, transport: Transport, mask: int) -> None:
+        client = transport._client
+        try:
+            if mask & selectors.EVENT_READ:
+                client.loop_read()
+            if client.socket() is not None and client.want_write():
+                client.loop_write()
+        except Exception:
+            log.exception("%s: error on the connection", transport.name)
+        self._sync(transport)

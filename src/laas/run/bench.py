@@ -10,9 +10,20 @@ the two cores share this process, the laas worker has a process of its own (a
 `laas.run.deployment.LocalDeployment` with `worker_process`), and the participants run
 in worker processes, each participant a real `ldm.Participant` with its own connection.
 They drive simulated road users along the Hamburg road (`laas.sim.scenario`), with the
-fixes' timestamps shifted to the wall clock. Latency is measured where it is felt: from
-just before `Session.submit` (JSON, encryption and publish included) to the moment the
-decrypted reply reaches the participant, on one clock in one process.
+fixes' timestamps shifted to the wall clock. By default every user's fixes fall on the
+whole second, as GNSS receivers emit them (so the load comes in a burst each second);
+`spread` gives each user a random phase within the period instead.
+
+Each participant process holds its participants on one shared client loop
+(`laas.run.loadgen.paced_sessions`, `ldm.transport.ClientLoop`): no network thread per
+connection, and connections opened at `connect_rate` per second in all. Before, each
+participant had paho's threaded loop, whose ``select()`` fails for descriptors of 1024
+and more; with three descriptors per client a process held at most about 340, and at
+800 participants in two processes the 340th connection of each timed out.
+
+Latency is measured where it is felt: from just before `Session.submit` (JSON,
+encryption and publish included) to the moment the decrypted reply reaches the
+participant, on one clock in one process.
 
 The floor, in the same run on the same user broker: each participant process has one
 plain MQTT client (`ldm.transport.Transport`) that publishes a ping beside every fourth
@@ -42,10 +53,10 @@ import numpy as np
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.run.deployment import BrokerChoice, LocalDeployment
+from laas.run.loadgen import paced_sessions
 from laas.run.participants import (
     Request,
     collect_replies,
-    open_sessions,
     run_participants,
     submit_on_time,
 )
@@ -94,6 +105,9 @@ class BenchConfig:
     seed: int = 0
     privacy_speedup: float = 20.0  # the Hamburg runs, faster than real time by
     reply_timeout: float = 5.0
+    connect_rate: float = 200.0  # new connections per second, over all processes
+    spread: bool = False  # fixes spread over the second, not all on the whole second
+    privacy: bool = True  # the two Hamburg runs after the load (the cost of privacy)
 
     def __post_init__(self) -> None:
         if self.participants < 1:
@@ -106,6 +120,8 @@ class BenchConfig:
             raise ConfigError("--rotation-period must be positive")
         if self.processes is not None and self.processes < 1:
             raise ConfigError("--processes must be at least 1")
+        if not self.connect_rate > 0.0:
+            raise ConfigError("--connect-rate must be positive")
 
 
 @dataclass(frozen=True)
@@ -159,6 +175,10 @@ class BenchReport:
     bare_lost: int
     dropped_stale: int  # by the cores, over max_age
     worker_answered: int
+    spread: bool = False  # fixes spread over the second (else all on the whole second)
+    ramp: float = math.nan  # s from the first connection to the last session open
+    cpu_participants: float = math.nan  # CPU s per s of sending, all participant processes
+    cpu_cores: float = math.nan  # CPU s per s of sending, the process of the two cores
     privacy: list[PrivacyRun] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
 
@@ -189,9 +209,14 @@ class BenchReport:
 # --- the participants' drive --------------------------------------------------------
 
 
-def bench_scenario(participants: int, rate: float, duration: float, seed: int = 0) -> Scenario:
+def bench_scenario(
+    participants: int, rate: float, duration: float, seed: int = 0, *, spread: bool = True
+) -> Scenario:
     """N road users on the Hamburg road: cars on the driving lanes, cyclists on the bike
-    lane, random starts and speeds, all staying on the route for `duration` seconds."""
+    lane, random starts and speeds, all staying on the route for `duration` seconds.
+
+    With `spread` each user has a random phase within the period; without, every fix
+    falls on a multiple of the period (the whole second at 1 Hz)."""
     base = hamburg_scenario()
     hdmap = HdMap.load(base.map)
     length = sum(hdmap.segments[s].length for s in base.route) - 1.0
@@ -203,6 +228,7 @@ def bench_scenario(participants: int, rate: float, duration: float, seed: int = 
         speed = min(speed, 0.8 * length / duration)
         start = float(rng.uniform(0.0, length - speed * duration))
         lane = int(rng.integers(0, 2)) if car else 3
+        phase = float(rng.uniform(0.0, min(0.999, 1.0 / rate)))  # drawn either way: same users
         users.append(
             UserPlan(
                 user=f"u{i:04d}",
@@ -210,7 +236,7 @@ def bench_scenario(participants: int, rate: float, duration: float, seed: int = 
                 speed=speed,
                 start=start,
                 lanes=((0.0, lane),),
-                phase=float(rng.uniform(0.0, min(0.999, 1.0 / rate))),
+                phase=phase if spread else 0.0,
             )
         )
     return base.model_copy(
@@ -230,6 +256,7 @@ class _Shard:
     sends: list[tuple[str, dict[str, Any]]]
     reply_timeout: float
     trust: dict[str, Any]  # the participants' pinned keys (LocalDeployment.trust)
+    connect_rate: float  # this process's share of BenchConfig.connect_rate
 
 
 def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, abort: Any) -> None:
@@ -254,8 +281,18 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
         with ExitStack() as stack:
             stack.callback(bare.stop)  # last: after the participants
             bare.start(10.0)
-            sessions = stack.enter_context(open_sessions(logins, 30.0, **shard.trust))
-            results.put(("ready", shard.index, len(sessions)))
+            t0 = time.monotonic()
+            sessions = stack.enter_context(
+                paced_sessions(
+                    logins,
+                    connect_rate=shard.connect_rate,
+                    progress=lambda stage, done, total: results.put(
+                        ("ramp", shard.index, (stage, done, total))
+                    ),
+                    **shard.trust,
+                )
+            )
+            results.put(("ready", shard.index, (len(sessions), time.monotonic() - t0)))
             go.wait()
             if not abort.is_set():
                 report = _drive(shard, sessions, bare, pongs, results, start_at.value)
@@ -276,18 +313,24 @@ def _drive(
     the replies and the pongs."""
     pings: dict[int, float] = {}
     next_report = time.perf_counter() + 1.0
+    waiting: list[Request] = []  # not yet answered at the last report
+    counted = 0  # requests looked at by the reports so far
 
     def beside(i: int, requests: Sequence[Request]) -> None:
-        nonlocal next_report
+        nonlocal next_report, waiting, counted
         if i % _PING_EVERY == 0:
             pings[i] = time.perf_counter()
             bare.publish(_PING.format(shard=shard.index), str(i).encode(), 0)
-        if time.perf_counter() >= next_report:
-            answered = sum(r.future.done() for r in requests)
-            results.put(("progress", shard.index, (i + 1, answered)))
-            next_report += 1.0
+        now = time.perf_counter()
+        if now >= next_report:  # once a second, looking only at what was open or is new
+            waiting = [r for r in (*waiting, *requests[counted:]) if not r.future.done()]
+            counted = len(requests)
+            results.put(("progress", shard.index, (i + 1, counted - len(waiting))))
+            next_report = now + 1.0
 
+    cpu0 = time.process_time()
     sent = submit_on_time(sessions, shard.sends, t0_ms=EPOCH_MS, start=start, on_submit=beside)
+    cpu = time.process_time() - cpu0
 
     latencies: list[float] = []
     errors: list[str] = []
@@ -312,6 +355,7 @@ def _drive(
         "bare": bare_latencies,
         "bare_lost": len(pings) - len(bare_latencies),
         "elapsed": sent.end - sent.start,
+        "cpu": cpu,
         "errors": errors,
     }
 
@@ -374,7 +418,10 @@ def _shards(
     for fix in trace.fixes:
         sends[owner[fix.user]].append((fix.user, fix.measurement.model_dump(exclude_none=True)))
     tag = secrets.token_hex(3)
-    return [_Shard(k, url, tag, s, config.reply_timeout, trust) for k, s in enumerate(sends) if s]
+    rate = config.connect_rate / processes
+    return [
+        _Shard(k, url, tag, s, config.reply_timeout, trust, rate) for k, s in enumerate(sends) if s
+    ]
 
 
 def _load(
@@ -408,15 +455,28 @@ def _load(
         if not echo_ready.wait(30.0):
             raise ConfigError("the echo process did not connect within 30 s")
         ready = 0
+        ramp = 0.0
+        stages: dict[int, tuple[str, int, int]] = {}
+        next_line = time.monotonic()  # the first ramp line at once, then one a second
+        wait = 90.0 + config.participants / config.connect_rate
         while ready < len(shards):
-            kind, index, value = results.get(timeout=90.0)
+            kind, index, value = results.get(timeout=wait)
             if kind == "failed":
                 raise ConfigError(f"participant process {index} could not start: {value}")
+            if kind == "ramp":
+                stages[index] = value
+                if time.monotonic() >= next_line:
+                    next_line = time.monotonic() + 1.0
+                    say("  " + _ramp_line(stages, config.participants))
+                continue
             ready += 1
-            say(f"  participant process {index}: {value} sessions open")
+            opened, seconds = value
+            ramp = max(ramp, seconds)
+            say(f"  participant process {index}: {opened} sessions open after {seconds:.1f} s")
         start_at.value = time.time() + 0.5
         go.set()
         say(f"  sending for {config.duration:g} s ...")
+        cpu0 = time.process_time()
         sent = {s.index: 0 for s in shards}
         answered = dict(sent)
         done: dict[int, dict[str, Any]] = {}
@@ -443,6 +503,7 @@ def _load(
                     f"  t={time.monotonic() - t_start:4.0f} s: {sum(sent.values())} fixes sent, "
                     f"{sum(answered.values())} replies"
                 )
+        cpu_cores = (time.process_time() - cpu0) / config.duration
     finally:
         abort.set()
         go.set()
@@ -469,8 +530,19 @@ def _load(
         bare_lost=sum(p["bare_lost"] for p in parts),
         dropped_stale=sum(c.stats.dropped_stale for c in deployment.cores.values()),
         worker_answered=-1,  # known when the deployment stops
+        spread=config.spread,
+        ramp=ramp,
+        cpu_participants=sum(p["cpu"] for p in parts) / config.duration,
+        cpu_cores=cpu_cores,
         errors=[e for p in parts for e in p["errors"]][:10],
     )
+
+
+def _ramp_line(stages: dict[int, tuple[str, int, int]], participants: int) -> str:
+    """One progress line of the ramp over all participant processes."""
+    connected = sum(done if stage == "connect" else total for stage, done, total in stages.values())
+    opened = sum(done for stage, done, _ in stages.values() if stage == "session")
+    return f"ramp: {connected}/{participants} connected, {opened}/{participants} sessions open"
 
 
 def _privacy(
@@ -498,18 +570,22 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
     """Run the load, then the two privacy runs; `progress` gets a line now and then."""
     say = progress or (lambda _line: None)
     kind = _kind(config.brokers)
-    scenario = bench_scenario(config.participants, config.rate, config.duration, config.seed)
+    scenario = bench_scenario(
+        config.participants, config.rate, config.duration, config.seed, spread=config.spread
+    )
     hdmap = HdMap.load(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), config.seed)
     say(
         f"laas bench: {config.participants} participants at {config.rate:g} Hz for "
-        f"{config.duration:g} s ({len(trace.fixes)} fixes) on {kind} brokers"
+        f"{config.duration:g} s ({len(trace.fixes)} fixes, "
+        f"{'spread over' if config.spread else 'on'} the period) on {kind} brokers; "
+        f"connecting {config.connect_rate:g}/s"
     )
     deployment = _deployment(kind, hdmap, config.rotation_period)
     with deployment:
         report = _load(config, deployment, trace, say)
     report.worker_answered = deployment.worker_answered
-    for period in (config.rotation_period, ROTATION_OFF):
+    for period in (config.rotation_period, ROTATION_OFF) if config.privacy else ():
         label = "off" if period == ROTATION_OFF else f"every {period:g} s"
         say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")
         report.privacy.append(_privacy(kind, period, config.privacy_speedup))
@@ -521,7 +597,9 @@ def format_report(r: BenchReport) -> str:
     lines = [
         f"laas bench: {r.participants} participants at {r.rate:g} Hz for {r.duration:g} s "
         f"through 3 {r.brokers} brokers, 2 LDM cores and the laas worker",
-        f"(participants in {r.processes} processes; floor: MQTT echo over the user broker)",
+        f"(participants in {r.processes} processes, ramp {r.ramp:.1f} s; fixes "
+        f"{'spread over the period' if r.spread else 'aligned to the period'}; "
+        "floor: MQTT echo over the user broker)",
         "",
         f"{'round trip, ms':<34}{'n':>7}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'max':>9}",
     ]
@@ -541,6 +619,8 @@ def format_report(r: BenchReport) -> str:
         f"{r.dropped_stale} dropped as stale by the cores",
         f"throughput   {r.throughput:.1f} corrected positions/s "
         f"({r.sent / r.elapsed if r.elapsed else 0:.1f} fixes/s sent)",
+        f"CPU          {r.cpu_participants:.2f} s/s in the participant processes, "
+        f"{r.cpu_cores:.2f} s/s in the cores' process (brokers and worker not counted)",
     ]
     if r.privacy:
         lines += ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]

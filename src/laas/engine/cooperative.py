@@ -139,8 +139,9 @@ class CooperativeLaneFilter(LaneFilter):
         # tau = motion_memory seconds.
         memory = min(1.0, track.dt / c.motion_memory)
         # Only the values of u = n . b that the posterior of b still holds, [lo, hi), are
-        # worked on (`CommonError.span`): nothing else is read, by the update of b or by
-        # the answer. The rest of the user's table stays as it was.
+        # worked on (`CommonError.span`, with a margin): the update of b and the answer
+        # read nothing else, and the margin keeps fresh the cells the posterior could grow
+        # into before this user's next fix. The rest of the user's table stays as it was.
         lo, hi = area.span(normal)
         a = (alpha[lo:hi] @ transition) * fit**memory
 

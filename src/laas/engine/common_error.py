@@ -481,12 +481,21 @@ class CommonErrorField:
         self._cap = cap
         self.areas: list[CommonError] = []
         self._cells: dict[tuple[int, int], list[CommonError]] = {}
+        self._last: tuple[tuple[float, float], CommonError | None] = ((math.nan, 0.0), None)
 
     def _cell(self, xy: np.ndarray) -> tuple[int, int]:
         return math.floor(float(xy[0]) / self.size), math.floor(float(xy[1]) / self.size)
 
     def at(self, xy: np.ndarray) -> CommonError:
         """The area whose centre is nearest `xy`, created if none is within size / 2."""
+        key = (float(xy[0]), float(xy[1]))
+        if key == self._last[0] and self._last[1] is not None:
+            return self._last[1]  # the same place again: a fix's correction, then its step
+        area = self._nearest(xy)
+        self._last = (key, area)
+        return area
+
+    def _nearest(self, xy: np.ndarray) -> CommonError:
         best: CommonError | None = None
         best_d = self.size / 2.0
         ci, cj = self._cell(xy)

@@ -72,14 +72,19 @@ class Track:
         course over ground comes from a velocity vector whose every component carries it
         (so a slow user's heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n'."""
         c = self._config
-        nrm = np.array([math.cos(fix.heading), -math.sin(fix.heading)])
-        sigma_h = math.radians(c.sigma_heading)
-        r_v = c.sigma_vel**2 * np.eye(2) + (fix.speed * sigma_h) ** 2 * np.outer(nrm, nrm)
-        r = np.zeros((4, 4))
-        sigma_pos = fix.accuracy if fix.accuracy is not None else c.sigma_pos
-        r[0, 0] = r[1, 1] = sigma_pos**2
-        r[2:, 2:] = r_v + _MIN_VELOCITY_VAR * np.eye(2)
-        return r
+        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
+        h2 = (fix.speed * math.radians(c.sigma_heading)) ** 2
+        v2 = c.sigma_vel**2 + _MIN_VELOCITY_VAR
+        p2 = (fix.accuracy if fix.accuracy is not None else c.sigma_pos) ** 2
+        ven = h2 * n_e * n_n
+        return np.array(
+            [
+                [p2, 0.0, 0.0, 0.0],
+                [0.0, p2, 0.0, 0.0],
+                [0.0, 0.0, v2 + h2 * n_e * n_e, ven],
+                [0.0, 0.0, ven, v2 + h2 * n_n * n_n],
+            ]
+        )
 
     def _start(self, fix: Fix) -> None:
         r = self._measurement_noise(fix)
@@ -111,30 +116,15 @@ class Track:
         return TrackUpdate.ACCEPTED
 
     def _predict(self, dt: float) -> None:
-        """x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]]. With P = [[A, B], [B', C]]
-        in 2x2 blocks,  F P F' = [[A + dt (B + B') + dt^2 C, B + dt C], [B' + dt C, C]],
-        and the white acceleration of variance q gives (filterpy's
-        Q_discrete_white_noise(dim=2, block_size=2))
+        """x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white acceleration
+        of variance q gives (filterpy's Q_discrete_white_noise(dim=2, block_size=2))
         Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]."""
-        x, p = self._x, self._P
-        x[:2] += dt * x[2:]
         q = self._config.sigma_accel**2
-        a, b, c = p[:2, :2], p[:2, 2:], p[2:, 2:]
-        bc = b + dt * c
-        out = np.empty((4, 4))
-        out[:2, :2] = a + dt * (b + b.T) + dt * dt * c
-        out[:2, 2:] = bc
-        out[2:, :2] = bc.T
-        out[2:, 2:] = c
-        out[0, 0] += q * dt**4 / 4.0
-        out[1, 1] += q * dt**4 / 4.0
-        out[0, 2] += q * dt**3 / 2.0
-        out[1, 3] += q * dt**3 / 2.0
-        out[2, 0] += q * dt**3 / 2.0
-        out[3, 1] += q * dt**3 / 2.0
-        out[2, 2] += q * dt**2
-        out[3, 3] += q * dt**2
-        self._P = out
+        a, b, c = q * dt**4 / 4.0, q * dt**3 / 2.0, q * dt**2
+        f = np.array([[1.0, 0.0, dt, 0.0], [0.0, 1.0, 0.0, dt], [0, 0, 1, 0], [0, 0, 0, 1]])
+        qm = np.array([[a, 0.0, b, 0.0], [0.0, a, 0.0, b], [b, 0.0, c, 0.0], [0.0, b, 0.0, c]])
+        self._x = f @ self._x
+        self._P = f @ self._P @ f.T + qm
 
     def _update(self, z: np.ndarray, r: np.ndarray) -> None:
         """H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),

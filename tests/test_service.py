@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from laas.map.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig
 from ldm import Request
@@ -74,3 +76,43 @@ def test_pseudonyms_are_forgotten_by_the_wall_clock_and_capped(hamburg_map: HdMa
     assert "segment" in send(service, "d", wall.now)
     assert service.sessions == 1 and service.engine.users == 1
     assert (service.stats.expired, service.stats.evicted) == (3, 1)
+
+
+def test_a_batch_gets_the_replies_one_at_a_time_would(hamburg_map: HdMap) -> None:
+    """`handle_many` against `handle` on the same requests: the Hamburg scenario's fixes
+    in batches of 7 (users with two fixes in one batch among them), with a malformed fix,
+    a duplicate and a fix from the far future mixed in. Every reply is the same."""
+    from laas.sim.scenario import hamburg_scenario, simulate_with
+
+    trace = simulate_with(hamburg_map, hamburg_scenario(), 2, sigma_pos=1.0, sigma_vel=0.25)
+    shift = NOW * 1000 - trace.fixes[0].measurement.timestamp
+    requests = []
+    for k, fix in enumerate(trace.fixes[:150]):
+        payload = fix.measurement.model_dump()
+        payload["timestamp"] = int(payload["timestamp"] + shift)
+        requests.append(Request(fix.user, f"c{k}", payload, NOW, False))
+        if k == 20:
+            requests.append(Request(fix.user, "dup", payload, NOW, False))
+        if k == 40:
+            requests.append(Request("x", "bad", {**payload, "speed": "fast"}, NOW, False))
+        if k == 60:
+            future = {**payload, "timestamp": int((NOW + 3600) * 1000)}
+            requests.append(Request("y", "future", future, NOW, False))
+    one = LaasService(hamburg_map, clock=Clock(), wall_clock=Clock(NOW + 100))
+    many = LaasService(hamburg_map, clock=Clock(), wall_clock=Clock(NOW + 100))
+    alone = [dict(one.handle(r)) for r in requests]
+    together = [
+        dict(a) for k in range(0, len(requests), 7) for a in many.handle_many(requests[k : k + 7])
+    ]
+    assert len(together) == len(alone)
+    for a, b in zip(together, alone, strict=True):  # the same, to rounding
+        assert a.keys() == b.keys()
+        for key, value in a.items():
+            if isinstance(value, float):
+                assert value == pytest.approx(b[key], rel=1e-12, abs=1e-12), key
+            else:
+                assert value == b[key], key
+    assert many.stats.answered == one.stats.answered > 100
+    assert (many.stats.invalid, many.stats.refused, many.stats.clock) == (1, 1, 1)
+    kinds = [a["error"]["kind"] for a in alone if "error" in a]
+    assert sorted(kinds) == ["clock", "invalid", "stale"]

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from laas.config import EngineConfig
-from laas.engine.tracking import Fix, Track, TrackUpdate
+from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
 
 
 def _fix(t: float, e: float, n: float, speed: float = 10.0, heading_deg: float = 90.0) -> Fix:
@@ -91,3 +91,49 @@ def test_the_track_is_filterpys_kalman_filter_to_rounding() -> None:
         np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
         np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)
+
+
+def test_a_batch_of_tracks_steps_as_filterpy_steps_each() -> None:
+    """`kalman_steps` on five tracks at once, each with its own irregular steps, speeds
+    and headings (one with the receiver's own accuracy), against one filterpy
+    KalmanFilter per track."""
+    from filterpy.common import Q_discrete_white_noise
+    from filterpy.kalman import KalmanFilter
+
+    config = EngineConfig(sigma_pos=1.5, sigma_accel=0.9)
+    rng = np.random.default_rng(5)
+    times = [0.0] * 5
+    tracks, filters = [], []
+    for i in range(5):
+        first = _fix(0.0, 500_000.0 + 100 * i, 5_900_000.0, speed=2.0 * i, heading_deg=70.0 * i)
+        tracks.append(Track(config, first))
+        kf = KalmanFilter(dim_x=4, dim_z=4)
+        kf.H = np.eye(4)
+        kf.x = np.array([first.e, first.n, *first.velocity]).reshape(4, 1)
+        kf.P = tracks[-1]._measurement_noise(first).copy()
+        filters.append(kf)
+    for _ in range(100):
+        fixes = []
+        for i, track in enumerate(tracks):
+            times[i] += float(rng.choice([0.1, 0.5, 1.0, 2.3]))
+            e, n = track.position + rng.normal(0, 20, 2)
+            speed, heading = max(0.0, 8.0 + rng.normal(0, 3.0)), rng.uniform(0, 360)
+            acc = 3.0 if i == 4 else None
+            fix = Fix(times[i], float(e), float(n), speed, math.radians(heading), acc)
+            assert track.admit(fix) is TrackUpdate.ACCEPTED
+            fixes.append(fix)
+        steps = [fx.t - tr.t for tr, fx in zip(tracks, fixes, strict=True)]
+        kalman_steps(tracks, fixes)
+        for track, kf, fix, dt in zip(tracks, filters, fixes, steps, strict=True):
+            f = np.eye(4)
+            f[0, 2] = f[1, 3] = dt
+            q = Q_discrete_white_noise(
+                dim=2, dt=dt, var=config.sigma_accel**2, block_size=2, order_by_dim=False
+            )
+            kf.predict(F=f, Q=q)
+            kf.update(np.array([fix.e, fix.n, *fix.velocity]), R=track._measurement_noise(fix))
+            assert track.t == fix.t and track.dt == dt and track.last_fix is fix
+            np.testing.assert_allclose(track.position, kf.x[:2, 0], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)

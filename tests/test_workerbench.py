@@ -11,16 +11,22 @@ from laas.run.workerbench import bench_worker, format_worker_report
 
 def test_the_worker_alone_answers_every_fix_and_times_each_stage() -> None:
     lines: list[str] = []
-    r = bench_worker(users=12, duration=20.0, seed=3, progress=lines.append)
+    r = bench_worker(users=12, duration=20.0, seed=3, batch=8, progress=lines.append)
     assert r.fixes > 150
-    assert r.answered == r.fixes  # every sealed fix opened, answered and sealed back
-    for us in (r.open_us, r.service_us, r.engine_us, r.seal_us, r.filterpy_us):
-        assert 0.0 < us < 1e5
-    assert abs(r.total_us - (r.open_us + r.service_us + r.engine_us + r.seal_us)) < 1e-9
-    assert r.fixes_per_second == 1e6 / r.total_us
+    # every sealed fix opened, answered and sealed back, one at a time and in batches
+    assert r.answered == r.fixes
+    for times in (r.single, r.batched):
+        for us in (times.open_us, times.service_us, times.engine_us, times.seal_us):
+            assert 0.0 < us < 1e5
+        parts = times.open_us + times.service_us + times.engine_us + times.seal_us
+        assert abs(times.total_us - parts) < 1e-9
+        assert times.fixes_per_second == 1e6 / times.total_us
+    assert 0.0 < r.filterpy_us < 1e5
+    assert r.engine_per_filterpy == r.batched.engine_us / r.filterpy_us
     assert lines and lines[0].startswith("sealing")
     table = format_worker_report(r)
     assert "engine / filterpy" in table and f"{r.answered} answered" in table
+    assert "batches of 8" in table
 
 
 def test_the_cli_prints_the_worker_alone_figures_as_json() -> None:

@@ -227,13 +227,14 @@ def _cmd_bench(a: argparse.Namespace) -> int:
 def _bench_worker_only(a: argparse.Namespace) -> int:
     from laas.run.workerbench import bench_worker, format_worker_report
 
-    if a.participants < 1 or not a.duration > 0:
-        raise ConfigError("--participants must be >= 1 and --duration > 0")
+    if a.participants < 1 or not a.duration > 0 or a.batch < 1:
+        raise ConfigError("--participants and --batch must be >= 1 and --duration > 0")
     report = bench_worker(
         map_name=a.map,
         users=a.participants,
         duration=a.duration,
         seed=a.seed,
+        batch=a.batch,
         progress=lambda line: print(line, file=sys.stderr, flush=True),
     )
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_worker_report(report))
@@ -517,6 +518,12 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("--map", default="messe-hamburg", help="with --worker-only: bundled map to roam")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=64,
+        help="with --worker-only: fixes per batch, timed beside one at a time (default 64)",
+    )
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("worker", help="serve the laas service on an LDM service cluster")

@@ -5,7 +5,9 @@ subscription, keeps a Kalman track per pseudonym (a rotated pseudonym simply sta
 new track; the common-error estimate, which is not per user, carries the group over),
 and answers each accepted fix with a `CorrectedPosition`. A fix it cannot use gets an
 error reply that names the field and the problem. The handler runs on the provider's
-one worker thread, so the engine needs no lock.
+one worker thread, so the engine needs no lock; it takes the fixes that waited together
+as one batch (`handle_many`), and the engine gives each the answer it would have given
+alone.
 
 What the worker refuses, each with an error reply ``{"error": {"kind", "message",
 "fields"}}`` and a counter in `WorkerStats`, touching no other pseudonym's state:
@@ -33,7 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import version
 from typing import Any
@@ -155,42 +157,77 @@ class LaasService:
 
     def handle(self, request: Request) -> Mapping[str, Any]:
         """One fix of one pseudonym -> its corrected position, or an error reply."""
+        return self.handle_many([request])[0]
+
+    def handle_many(self, requests: Sequence[Request]) -> list[Mapping[str, Any]]:
+        """Fixes that waited together -> one reply each, in order: each is checked, the
+        engine takes the accepted ones as one batch (`Engine.process_many`, which answers
+        as it would one at a time), and silent pseudonyms are forgotten after."""
+        replies: list[Mapping[str, Any]] = [{} for _ in requests]
+        work: list[tuple[int, str, GpsMeasurement]] = []
+        now = self._wall()
+        for i, request in enumerate(requests):
+            checked = self._check(request, now)
+            if isinstance(checked, ErrorReply):
+                replies[i] = checked.model_dump()
+            else:
+                work.append((i, request.pseudonym, checked))
+        if work:
+            started = time.perf_counter()
+            try:
+                answers = self.engine.process_many([(u, m) for _, u, m in work])
+            except Exception:
+                self.stats.failed += len(work)
+                log.exception("the engine failed on a batch of %d fixes", len(work))
+                failed = ErrorReply.of(
+                    "internal", "the service failed on this fix; it has been logged"
+                ).model_dump()
+                for i, _, _ in work:
+                    replies[i] = failed
+                return replies
+            self.stats.engine_seconds += time.perf_counter() - started
+            for (i, _, m), answer in zip(work, answers, strict=True):
+                replies[i] = self._reply(m, answer)
+        self._housekeep(now)
+        return replies
+
+    def _check(self, request: Request, now: float) -> GpsMeasurement | ErrorReply:
+        """The request's fix, or why it is refused; an accepted fix's session is noted."""
         try:
             measurement = GpsMeasurement.model_validate(request.payload)
         except ValidationError as exc:
             self.stats.invalid += 1
             found = problems(exc)
             summary = "; ".join(f"{field}: {problem}" for field, problem in found)
-            return ErrorReply.of("invalid", f"measurement refused: {summary}", *found).model_dump()
-        now = self._wall()
-        refusal = self._check_clock(request.pseudonym, measurement.timestamp / 1000.0, now)
+            return ErrorReply.of("invalid", f"measurement refused: {summary}", *found)
+        t = measurement.timestamp / 1000.0
+        refusal = self._check_clock(request.pseudonym, t, now)
         if refusal is None:
             refusal = self._check_area(measurement)
         if refusal is not None:
-            return refusal.model_dump()
-        started = time.perf_counter()
-        try:
-            answer = self.engine.process(request.pseudonym, measurement)
-        except Exception:
-            self.stats.failed += 1
-            log.exception("the engine failed on a fix")
-            return ErrorReply.of(
-                "internal", "the service failed on this fix; it has been logged"
-            ).model_dump()
-        self.stats.engine_seconds += time.perf_counter() - started
-        self._heard(request.pseudonym, measurement.timestamp / 1000.0, now)
+            return refusal
+        session = self._sessions.get(request.pseudonym)
+        if session is None:
+            self._sessions[request.pseudonym] = _Session(t, now, now)
+        else:
+            session.last = now
+            self._sessions.move_to_end(request.pseudonym)
+        return measurement
+
+    def _reply(self, m: GpsMeasurement, answer: CorrectedPosition | None) -> Mapping[str, Any]:
         if answer is None:
             self.stats.refused += 1
             return ErrorReply.of(
                 "stale",
-                f"timestamp {measurement.timestamp} is not newer than this session's last fix",
+                f"timestamp {m.timestamp} is not newer than this session's last fix",
                 ("timestamp", "not newer than the last fix"),
             ).model_dump()
         self.stats.answered += 1
         return answer.model_dump()
 
-    def _heard(self, pseudonym: str, t: float, now: float) -> None:
-        """Note an accepted fix; forget the silent and, past the cap, the stalest."""
+    def _housekeep(self, now: float) -> None:
+        """Forget the pseudonyms silent for track_timeout (checked every expire_every s)
+        and, past max_pseudonyms, the stalest."""
         tick = self._clock()
         if tick >= self._next_expiry:
             self._next_expiry = tick + self.config.expire_every
@@ -202,12 +239,6 @@ class LaasService:
                 del self._sessions[oldest]
                 self.engine.forget(oldest, expired=True)
                 self.stats.expired += 1
-        session = self._sessions.get(pseudonym)
-        if session is None:
-            self._sessions[pseudonym] = _Session(t, now, now)
-        else:
-            session.last = now
-            self._sessions.move_to_end(pseudonym)
         while len(self._sessions) > self.config.max_pseudonyms:
             gone, _ = self._sessions.popitem(last=False)
             self.engine.forget(gone)
@@ -271,7 +302,13 @@ def start_worker(
     ``data_qos``, ...).
     """
     service = LaasService(hdmap, config, worker)
-    provider = Provider.create(cluster, service_spec(), service.handle, **provider_settings)
+    provider = Provider.create(
+        cluster,
+        service_spec(),
+        service.handle,
+        batch_handler=service.handle_many,
+        **provider_settings,
+    )
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)
     return provider, service

@@ -3,6 +3,8 @@
 paho's network thread only puts events on the worker's inbox; the worker handles them
 one at a time, so component state needs no locks, and runs ``tick`` between events.
 ``stop_worker`` ends the thread before the next item, however long the backlog.
+With ``batch`` above one, the worker takes what is waiting, up to ``batch`` items, and
+hands them to ``handle_many`` at once (a provider's batch handler).
 
 The inbox is a plain FIFO unless the component brings its own `Inbox`: the core uses an
 `ldm.intake.FairQueue`, which serves its participants round-robin.
@@ -78,10 +80,16 @@ class Worker(Generic[_Item]):
     """
 
     def __init__(
-        self, name: str, interval: float, limit: int | None = None, inbox: Inbox | None = None
+        self,
+        name: str,
+        interval: float,
+        limit: int | None = None,
+        inbox: Inbox | None = None,
+        batch: int = 1,
     ) -> None:
         self._queue: Inbox = _Fifo(limit) if inbox is None else inbox
         self._interval = interval
+        self._batch = batch
         self._stopping = threading.Event()
         self._overflow_lock = threading.Lock()  # several paho threads may overflow at once
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -106,6 +114,16 @@ class Worker(Generic[_Item]):
     def overflowed(self) -> None:
         """One item was dropped by `sink` (count it); the default does nothing."""
 
+    @property
+    def queued(self) -> int:
+        """Items waiting in the inbox now (read from any thread, e.g. by metrics)."""
+        return self._queue.qsize()
+
+    @property
+    def alive(self) -> bool:
+        """Whether the worker thread is running (started and not stopped)."""
+        return self._thread.is_alive()
+
     def start_worker(self) -> None:
         self._thread.start()
 
@@ -120,6 +138,11 @@ class Worker(Generic[_Item]):
     def handle(self, item: _Item) -> None:
         raise NotImplementedError
 
+    def handle_many(self, items: list[_Item]) -> None:
+        """Items that were waiting together, in order; the default handles each."""
+        for item in items:
+            self.handle(item)
+
     def tick(self, now: float) -> None:
         """Periodic housekeeping; the default does nothing."""
 
@@ -133,7 +156,12 @@ class Worker(Generic[_Item]):
             if item is _STOP or self._stopping.is_set():
                 return
             try:
-                if item is not None:
+                if item is not None and self._batch > 1:
+                    items = self._waiting(item)
+                    if self._stopping.is_set():
+                        return
+                    self.handle_many(items)  # type: ignore[arg-type]
+                elif item is not None:
                     self.handle(item)  # type: ignore[arg-type]
                 now = time.time()
                 if now >= next_tick:
@@ -141,3 +169,16 @@ class Worker(Generic[_Item]):
                     self.tick(now)
             except Exception:
                 log.exception("%s: error while handling an event", self._thread.name)
+
+    def _waiting(self, first: object) -> list[object]:
+        """`first` and what waits behind it, up to ``batch`` items (never the stop)."""
+        items = [first]
+        while len(items) < self._batch:
+            try:
+                item = self._queue.get(timeout=0.0)
+            except queue.Empty:
+                break
+            if item is _STOP:
+                break
+            items.append(item)
+        return items

@@ -256,6 +256,8 @@ class ProviderConfig(_Settings):
     ``CoreConfig.data_qos`` holds on every hop. A number fixes both instead."""
     client_id: str | None = None
     max_queue: int = Field(default=10_000, ge=1)
+    max_batch: int = Field(default=64, ge=1)
+    """With a batch handler: at most this many waiting inputs are handed over at once."""
     max_payload: int = Field(default=64 * 1024, ge=256)
     cipher_cache: int = Field(default=50_000, ge=1)
     identity_file: Path | None = None

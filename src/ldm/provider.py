@@ -7,7 +7,10 @@ learns who a participant is: only a pseudonym, which changes on rotation, and a 
 ephemeral key with it.
 
 The handler runs on the provider's worker thread, one request at a time; it returns the
-reply payload (or None to reply later with `Provider.reply`).
+reply payload (or None to reply later with `Provider.reply`). A batch handler instead
+takes every input that waited together (up to ``max_batch``), decrypted, in order of
+arrival, and returns one reply (or None) for each: a service whose work is cheaper per
+item in bulk keeps up under load at no cost to a lone request.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import secrets
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +36,7 @@ from ldm.identity import SigningKey
 from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
 from ldm.transport import Connected, Event, Message, Transport, Will
 
-__all__ = ["Handler", "Provider", "ProviderStats", "Request"]
+__all__ = ["BatchHandler", "Handler", "Provider", "ProviderStats", "Request"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +54,7 @@ class Request:
 
 
 Handler = Callable[[Request], Mapping[str, Any] | None]
+BatchHandler = Callable[[Sequence[Request]], Sequence[Mapping[str, Any] | None]]
 
 
 @dataclass(slots=True)
@@ -111,11 +115,13 @@ class Provider(Worker[Event]):
         *,
         key: KeyPair | None = None,
         identity: SigningKey | None = None,
+        batch_handler: BatchHandler | None = None,
     ) -> None:
         super().__init__(
             f"ldm-provider-{spec.name}",
             min(0.5, config.announce_interval / 4),
             limit=config.max_queue,
+            batch=1 if batch_handler is None else config.max_batch,
         )
         self.config = config
         self.key = key or KeyPair()
@@ -141,6 +147,7 @@ class Provider(Worker[Event]):
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self._handler = handler
+        self._batch_handler = batch_handler
         self._peers: OrderedDict[str, _Peer] = OrderedDict()
         self._by_pseudonym: OrderedDict[str, _Reply] = OrderedDict()
         self._count = threading.Lock()  # replies and their errors may come from any thread
@@ -166,11 +173,12 @@ class Provider(Worker[Event]):
         *,
         key: KeyPair | None = None,
         identity: SigningKey | None = None,
+        batch_handler: BatchHandler | None = None,
         **settings: Any,
     ) -> Provider:
         """Build a provider from a URL or settings plus any ProviderConfig field."""
         config = build(ProviderConfig, broker=BrokerSettings.of(broker), **settings)
-        return cls(config, spec, handler, key=key, identity=identity)
+        return cls(config, spec, handler, key=key, identity=identity, batch_handler=batch_handler)
 
     def start(self, timeout: float | None = 10.0) -> Provider:
         """Connect, announce and serve in background threads."""
@@ -220,6 +228,19 @@ class Provider(Worker[Event]):
         else:
             self._input(item)
 
+    def handle_many(self, items: list[Event]) -> None:
+        """Inputs that waited together go to the batch handler as one batch (a reconnect
+        among them is handled in its place)."""
+        run: list[Message] = []
+        for item in items:
+            if isinstance(item, Connected):
+                self._inputs(run)
+                run = []
+                self._announce(time.time())
+            else:
+                run.append(item)
+        self._inputs(run)
+
     def tick(self, now: float) -> None:
         if now >= self._next_announce and self.transport.connected:
             self._announce(now)
@@ -256,6 +277,25 @@ class Provider(Worker[Event]):
             with self._count:
                 self.stats.handler_errors += 1
             log.error("%s: no reply to a request", self.name, exc_info=True)
+
+    def _inputs(self, messages: list[Message]) -> None:
+        """A batch of input: opened one by one, answered by the batch handler at once."""
+        assert self._batch_handler is not None
+        opened = [o for o in map(self.open, messages) if o is not None]
+        if not opened:
+            return
+        try:
+            answers = self._batch_handler([request for request, _ in opened])
+            if len(answers) != len(opened):
+                raise ValueError(f"{len(answers)} replies to a batch of {len(opened)}")
+        except Exception:
+            with self._count:
+                self.stats.handler_errors += len(opened)
+            log.error("%s: no reply to a batch of %d", self.name, len(opened), exc_info=True)
+            return
+        for (request, route), answer in zip(opened, answers, strict=True):
+            if answer is not None:
+                self._send(route, request.pseudonym, request.correlation_id, answer)
 
     def open(self, msg: Message) -> tuple[Request, _Reply] | None:
         """One input message -> the decrypted request and the route of its reply; None

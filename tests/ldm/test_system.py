@@ -7,18 +7,20 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Any
 
 import pytest
 
-from ldm import Core, Participant, ServiceNotFound
+from ldm import Core, Participant, Provider, Request, ServiceNotFound
 from ldm.brokers import wait_for
 from ldm.config import BrokerSettings
 from ldm.messages import Envelope, ServiceList
 from ldm.transport import Connected, Message, Transport
 
 from .deployment import (
+    ECHO,
     FAST,
     Deployment,
     EchoService,
@@ -287,3 +289,48 @@ def test_a_vanished_core_takes_its_services_with_it(broker_factory) -> None:
         provider.stop()
         service_core.cluster.stop()
         user_core.stop()
+
+
+def test_a_batch_handler_gets_what_waited_and_answers_each_in_order(broker_factory) -> None:
+    """A provider with a batch handler: while its first batch is being handled, the rest
+    of a burst from three participants waits and arrives as larger batches; every request
+    gets its own reply, and each participant's requests reach the handler in order."""
+    d = deploy(broker_factory)
+    batches: list[list[Request]] = []
+
+    def handle_many(requests: Sequence[Request]) -> list[dict[str, Any]]:
+        batches.append(list(requests))
+        if len(batches) == 1:
+            time.sleep(0.3)  # a slow first batch: the burst queues up behind it
+        return [{"echo": r.payload, "batch": len(batches)} for r in requests]
+
+    spec = ECHO.model_copy(update={"name": "becho"})
+    provider = Provider.create(
+        d.service.url,
+        spec,
+        lambda r: {"single": True},
+        batch_handler=handle_many,
+        announce_interval=0.3,
+        max_age=FAST["max_age"],
+        max_batch=16,
+    ).start(timeout=5)
+    try:
+        participants = [d.participant(cid, user) for cid, user in CLIENTS]
+        for p in participants:
+            assert wait_for(has_service(p, "becho"), 5), "becho never listed"
+        sessions = [p.open("becho") for p in participants]
+        sent = [stream(s, cid, 20, 0.0) for s, (cid, _) in zip(sessions, CLIENTS, strict=True)]
+        for stream_ in sent:
+            for payload, future in stream_:
+                reply = future.result(10)
+                assert reply["echo"] == payload and "single" not in reply
+        seen = [r for b in batches for r in b]
+        assert len(seen) == 60
+        assert max(len(b) for b in batches) > 1, "the burst should have waited in batches"
+        assert max(len(b) for b in batches) <= 16
+        for cid, _ in CLIENTS:
+            order = [r.payload["i"] for r in seen if r.payload["who"] == cid]
+            assert order == list(range(20)), f"{cid}'s requests were reordered"
+    finally:
+        provider.stop()
+        d.close()

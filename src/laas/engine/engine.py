@@ -17,6 +17,7 @@ Per fix of user u at time t:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError
 from laas.engine.lanefilter import Placement, make_lane_filter
-from laas.engine.tracking import Fix, Track, TrackUpdate
+from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
 from laas.engine.transition import motion_fit
 from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
@@ -71,32 +72,82 @@ class Engine:
 
     def process(self, user: str, measurement: GpsMeasurement) -> CorrectedPosition | None:
         """Correct one fix of `user`; None if it was a duplicate or older than the last."""
-        c = self.config
-        e, n = self.map.projection.to_utm(measurement.longitude, measurement.latitude)
-        fix = Fix(
-            t=measurement.timestamp / 1000.0,
-            e=e,
-            n=n,
-            speed=measurement.speed,
-            heading=math.radians(measurement.heading) - self._convergence,
-            accuracy=None if measurement.accuracy is None else measurement.accuracy / math.sqrt(2),
+        return self.process_many([(user, measurement)])[0]
+
+    def process_many(
+        self, fixes: Sequence[tuple[str, GpsMeasurement]]
+    ) -> list[CorrectedPosition | None]:
+        """Correct a batch of fixes, each as `process` would in turn: the same answers,
+        in the same order.
+
+        What does not depend on the other users is done for the whole batch at once:
+        the projections to and from the map's frame, and the Kalman step of every track
+        (`kalman_steps`; a run of the batch in which no user has two fixes at a time).
+        The lane filter and the common error then take the fixes one by one, in order,
+        as each fix's evidence changes what the next one is judged against.
+        """
+        if not fixes:
+            return []
+        lon = np.array([m.longitude for _, m in fixes])
+        lat = np.array([m.latitude for _, m in fixes])
+        en = self.map.projection.to_utm_array(lon, lat)
+        placed: list[_Answer | None] = []
+        start = 0
+        while start < len(fixes):  # runs in which each user has at most one fix
+            seen: set[str] = set()
+            end = start
+            while end < len(fixes) and fixes[end][0] not in seen:
+                seen.add(fixes[end][0])
+                end += 1
+            run = range(start, end)
+            pending: list[tuple[Track, Fix]] = []
+            tracks = [self._admit(fixes[i][0], self._fix(fixes[i][1], en[i]), pending) for i in run]
+            kalman_steps([t for t, _ in pending], [f for _, f in pending])
+            for i, track in zip(run, tracks, strict=True):
+                user, measurement = fixes[i]
+                placed.append(None if track is None else self._place(user, measurement, track))
+            start = end
+        return self._answers(placed)
+
+    def _fix(self, m: GpsMeasurement, en: np.ndarray) -> Fix:
+        """A measurement in the map's frame: heading from true north to grid north, the
+        receiver's own accuracy (a horizontal 1-sigma radius) to a 1-sigma per axis."""
+        return Fix(
+            t=m.timestamp / 1000.0,
+            e=float(en[0]),
+            n=float(en[1]),
+            speed=m.speed,
+            heading=math.radians(m.heading) - self._convergence,
+            accuracy=None if m.accuracy is None else m.accuracy / math.sqrt(2),
         )
+
+    def _admit(self, user: str, fix: Fix, pending: list[tuple[Track, Fix]]) -> Track | None:
+        """The user's track with the fix admitted (`Track.admit`), its Kalman step added
+        to `pending`; None for a duplicate or a fix older than the track's last."""
         track = self._tracks.get(user)
         if track is None:
-            track = self._tracks[user] = Track(c, fix)
+            track = self._tracks[user] = Track(self.config, fix)
             self.stats.started += 1
-        else:
-            outcome = track.update(fix)
-            if outcome is TrackUpdate.DUPLICATE:
-                self.stats.duplicate += 1
-                return None
-            if outcome is TrackUpdate.OUT_OF_ORDER:
-                self.stats.out_of_order += 1
-                return None
-            if outcome is TrackUpdate.RESTARTED:
-                self.stats.restarted += 1
-                self._lanes.leave(user)
-        b, b_cov = self._lanes.correction(track.position, fix.t)
+            return track
+        outcome = track.admit(fix)
+        if outcome is TrackUpdate.DUPLICATE:
+            self.stats.duplicate += 1
+            return None
+        if outcome is TrackUpdate.OUT_OF_ORDER:
+            self.stats.out_of_order += 1
+            return None
+        if outcome is TrackUpdate.RESTARTED:
+            self.stats.restarted += 1
+            self._lanes.leave(user)
+        elif self.config.kalman:
+            pending.append((track, fix))
+        return track
+
+    def _place(self, user: str, measurement: GpsMeasurement, track: Track) -> _Answer:
+        """Steps 2-5 of the module docstring for a fix already in its track."""
+        c = self.config
+        t = measurement.timestamp / 1000.0
+        b, b_cov = self._lanes.correction(track.position, t)
         q = track.position - b
         segment = self.map.locate(float(q[0]), float(q[1]), c.max_map_distance)
         if segment is not None and c.mode == "default":
@@ -106,7 +157,7 @@ class Engine:
             self._lanes.leave(user)
             self.stats.off_map += 1
             return self._off_map(measurement, q, track.position_cov + b_cov)
-        placed = self._lanes.step(user, track, segment, fix.t)
+        placed = self._lanes.step(user, track, segment, t)
         return self._answer(measurement, segment, placed, track)
 
     def _plausible(
@@ -165,7 +216,7 @@ class Engine:
 
     def _answer(
         self, measurement: GpsMeasurement, segment: Segment, placed: Placement, track: Track
-    ) -> CorrectedPosition:
+    ) -> _Answer:
         """The placed position with its 1-sigma across (from the lane filter) and along
         the road: along = sqrt(t' (P_track + P_b) t)."""
         point = placed.point
@@ -173,8 +224,8 @@ class Engine:
         tangent = segment.tangent(s)
         along = math.sqrt(float(tangent @ (track.position_cov + placed.common_cov) @ tangent))
         lane = placed.lane
-        return self._position(
-            measurement,
+        return _Answer(
+            measurement.timestamp,
             point,
             segment.id,
             lane,
@@ -184,34 +235,52 @@ class Engine:
             along,
         )
 
-    def _off_map(
-        self, measurement: GpsMeasurement, point: np.ndarray, cov: np.ndarray
-    ) -> CorrectedPosition:
+    def _off_map(self, measurement: GpsMeasurement, point: np.ndarray, cov: np.ndarray) -> _Answer:
         """Off every road element: the corrected fix, 1-sigma the largest axis of `cov`."""
         sigma = math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))
-        return self._position(measurement, point, None, None, None, 0.0, sigma, sigma)
+        return _Answer(measurement.timestamp, point, None, None, None, 0.0, sigma, sigma)
 
-    def _position(
-        self,
-        measurement: GpsMeasurement,
-        point: np.ndarray,
-        segment: str | None,
-        lane: int | None,
-        lane_type: LaneType | None,
-        probability: float,
-        cross: float,
-        along: float,
-    ) -> CorrectedPosition:
-        lon, lat = self.map.projection.to_wgs84(float(point[0]), float(point[1]))
-        return CorrectedPosition(
-            timestamp=measurement.timestamp,
-            latitude=min(max(lat, -90.0), 90.0),
-            longitude=min(max(lon, -180.0), 180.0),
-            segment=segment,
-            lane=lane,
-            lane_type=lane_type,
-            probability=min(max(probability, 0.0), 1.0),
-            accuracy=math.hypot(cross, along),
-            accuracy_cross=cross,
-            accuracy_along=along,
-        )
+    def _answers(self, placed: list[_Answer | None]) -> list[CorrectedPosition | None]:
+        """The answers in WGS 84, their points projected back all at once."""
+        found = [a for a in placed if a is not None]
+        if not found:
+            return [None] * len(placed)
+        xy = np.array([a.point for a in found], dtype=float)
+        lonlat = self.map.projection.to_wgs84_array(xy[:, 0], xy[:, 1])
+        out: list[CorrectedPosition | None] = []
+        k = 0
+        for a in placed:
+            if a is None:
+                out.append(None)
+                continue
+            lon, lat = float(lonlat[k, 0]), float(lonlat[k, 1])
+            k += 1
+            out.append(
+                CorrectedPosition(
+                    timestamp=a.timestamp,
+                    latitude=min(max(lat, -90.0), 90.0),
+                    longitude=min(max(lon, -180.0), 180.0),
+                    segment=a.segment,
+                    lane=a.lane,
+                    lane_type=a.lane_type,
+                    probability=min(max(a.probability, 0.0), 1.0),
+                    accuracy=math.hypot(a.cross, a.along),
+                    accuracy_cross=a.cross,
+                    accuracy_along=a.along,
+                )
+            )
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class _Answer:
+    """An answer in the map's frame, before its point goes back to WGS 84."""
+
+    timestamp: int
+    point: np.ndarray
+    segment: str | None
+    lane: int | None
+    lane_type: LaneType | None
+    probability: float
+    cross: float
+    along: float

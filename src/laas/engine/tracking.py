@@ -9,8 +9,9 @@ measures the position and, from speed s and heading h, the velocity:
 The filter is filterpy's `KalmanFilter` written out for this model (predict with
 F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
 few numpy calls: filterpy's general predict and update cost about 150 us a fix, most of
-it bookkeeping, this about 20 us. `tests/test_tracking.py` holds it to filterpy's own
-`KalmanFilter` and `Q_discrete_white_noise`, which stay the reference.
+it bookkeeping, this about 20 us. `kalman_steps` does the same step for a batch of
+tracks at once, as stacked (B, 4, 4) arrays. `tests/test_tracking.py` holds both to
+filterpy's own `KalmanFilter` and `Q_discrete_white_noise`, which stay the reference.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 
-__all__ = ["Fix", "Track", "TrackUpdate"]
+__all__ = ["Fix", "Track", "TrackUpdate", "kalman_steps"]
 
 _MIN_VELOCITY_VAR = 0.05**2  # m^2/s^2: a floor, so a stopped receiver's heading is not trusted
 
@@ -94,26 +95,44 @@ class Track:
         self.dt = 0.0
         self.last_fix = fix
 
-    def update(self, fix: Fix) -> TrackUpdate:
-        """Fold one fix into the track; stale fixes are refused, long gaps restart it."""
+    def classify(self, fix: Fix) -> TrackUpdate:
+        """What `update` would do with the fix, changing nothing."""
         dt = fix.t - self.t
         if dt == 0.0:
             return TrackUpdate.DUPLICATE
         if dt < 0.0:
             return TrackUpdate.OUT_OF_ORDER
         if dt > self._config.track_timeout:
-            self._start(fix)
             return TrackUpdate.RESTARTED
-        if not self._config.kalman:
+        return TrackUpdate.ACCEPTED
+
+    def update(self, fix: Fix) -> TrackUpdate:
+        """Fold one fix into the track; stale fixes are refused, long gaps restart it."""
+        outcome = self.admit(fix)
+        if outcome is TrackUpdate.ACCEPTED and self._config.kalman:
+            dt = fix.t - self.t
+            self._predict(dt)
+            self._update(np.array([fix.e, fix.n, *fix.velocity]), self._measurement_noise(fix))
+            self._accepted(fix, dt)
+        return outcome
+
+    def admit(self, fix: Fix) -> TrackUpdate:
+        """`update` but for the Kalman step of an accepted fix, which is left to the
+        caller (`update`, or `kalman_steps` for a batch); a restart, or with the Kalman
+        filter off any accepted fix, is taken here in full."""
+        outcome = self.classify(fix)
+        if outcome is TrackUpdate.RESTARTED:
+            self._start(fix)
+        elif outcome is TrackUpdate.ACCEPTED and not self._config.kalman:
+            dt = fix.t - self.t
             self._start(fix)
             self.dt = dt
-            return TrackUpdate.ACCEPTED
-        self._predict(dt)
-        self._update(np.array([fix.e, fix.n, *fix.velocity]), self._measurement_noise(fix))
+        return outcome
+
+    def _accepted(self, fix: Fix, dt: float) -> None:
         self.t = fix.t
         self.dt = dt
         self.last_fix = fix
-        return TrackUpdate.ACCEPTED
 
     def _predict(self, dt: float) -> None:
         """x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white acceleration
@@ -159,3 +178,46 @@ class Track:
     def position_at(self, t: float) -> np.ndarray:
         """(e, n) extrapolated to time t at constant velocity, without changing the track."""
         return self.position + self.velocity * (t - self.t)
+
+
+def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
+    """`Track.update`'s Kalman step for fix i of track i, all at once (each fix admitted
+    by its track with `Track.admit`, one fix per track). The same equations as
+    `Track._predict` and `Track._update`, on stacked (B, 4) states and (B, 4, 4)
+    covariances."""
+    if not tracks:
+        return
+    if len(tracks) == 1:  # no stacking for one
+        track, fix = tracks[0], fixes[0]
+        dt = fix.t - track.t
+        track._predict(dt)
+        track._update(np.array([fix.e, fix.n, *fix.velocity]), track._measurement_noise(fix))
+        track._accepted(fix, dt)
+        return
+    config = tracks[0]._config
+    b = len(tracks)
+    x = np.stack([tr._x for tr in tracks])
+    p = np.stack([tr._P for tr in tracks])
+    dts = np.array([f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)])
+    # Predict: x = F x, P = F P F' + Q (Track._predict).
+    f = np.broadcast_to(np.eye(4), (b, 4, 4)).copy()
+    f[:, 0, 2] = f[:, 1, 3] = dts
+    q = config.sigma_accel**2
+    qa, qb, qc = q * dts**4 / 4.0, q * dts**3 / 2.0, q * dts**2
+    qm = np.zeros((b, 4, 4))
+    qm[:, 0, 0] = qm[:, 1, 1] = qa
+    qm[:, 0, 2] = qm[:, 1, 3] = qm[:, 2, 0] = qm[:, 3, 1] = qb
+    qm[:, 2, 2] = qm[:, 3, 3] = qc
+    x = np.einsum("bij,bj->bi", f, x)
+    p = f @ p @ f.transpose(0, 2, 1) + qm
+    # Update (Track._update): K = P S^-1, x += K (z - x), Joseph's form of P.
+    z = np.array([[fx.e, fx.n, *fx.velocity] for fx in fixes])
+    r = np.stack([tr._measurement_noise(fx) for tr, fx in zip(tracks, fixes, strict=True)])
+    k = np.linalg.solve(p + r, p).transpose(0, 2, 1)
+    x = x + np.einsum("bij,bj->bi", k, z - x)
+    i_k = np.eye(4) - k
+    p = i_k @ p @ i_k.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
+    for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
+        track._x = x[i]
+        track._P = p[i]
+        track._accepted(fix, float(dts[i]))

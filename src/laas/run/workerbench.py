@@ -13,6 +13,12 @@ worker's own code in this process, one after another, and each stage is timed:
 No broker, no paho thread and no queue is involved, so the figure is the worker's CPU
 ceiling: fixes per second on one core = 1e6 / (total us per fix).
 
+Two workers take the same fixes in the same run, chunk by chunk in turn: one is handed
+them one at a time (`LaasService.handle`, as a worker with an empty queue), the other
+in batches of `batch` in arrival order (`LaasService.handle_many`, as the provider hands
+over what waited together under load). Both give the same answers; the figures say what
+the batch saves.
+
 The reference is one Kalman step as filterpy does it (`KalmanFilter.predict` with
 `Q_discrete_white_noise`, then `update`, on the track's 4-state model), timed in the same
 run: the fixes go through the worker in chunks, and a chunk of filterpy steps of the same
@@ -45,19 +51,13 @@ _CHUNK = 250  # fixes per timed chunk, then as many filterpy steps
 
 
 @dataclass(frozen=True)
-class WorkerBenchReport:
-    """Microseconds per fix for each stage, and what they add up to."""
+class StageTimes:
+    """Microseconds per fix for each stage of one way of feeding the worker."""
 
-    map: str
-    users: int
-    fixes: int
-    answered: int
     open_us: float
     service_us: float
     engine_us: float
     seal_us: float
-    filterpy_us: float
-    seconds: float
 
     @property
     def total_us(self) -> float:
@@ -67,18 +67,83 @@ class WorkerBenchReport:
     def fixes_per_second(self) -> float:
         return 1e6 / self.total_us
 
+
+@dataclass(frozen=True)
+class WorkerBenchReport:
+    """Stage times one fix at a time and in batches, and one filterpy step, per fix."""
+
+    map: str
+    users: int
+    fixes: int
+    answered: int
+    batch: int
+    single: StageTimes
+    batched: StageTimes
+    filterpy_us: float
+    seconds: float
+
     @property
     def engine_per_filterpy(self) -> float:
-        return self.engine_us / self.filterpy_us
+        """The batched engine's cost per fix in filterpy Kalman steps."""
+        return self.batched.engine_us / self.filterpy_us
 
     def as_dict(self) -> dict[str, object]:
         out: dict[str, object] = asdict(self)
-        out.update(
-            total_us=self.total_us,
-            fixes_per_second=self.fixes_per_second,
-            engine_per_filterpy=self.engine_per_filterpy,
-        )
+        for name in ("single", "batched"):
+            times: StageTimes = getattr(self, name)
+            out[name] = {
+                **asdict(times),
+                "total_us": times.total_us,
+                "fixes_per_second": times.fixes_per_second,
+            }
+        out["engine_per_filterpy"] = self.engine_per_filterpy
         return out
+
+
+class _Lane:
+    """One worker (provider code and service) fed the fixes one way, timing each stage."""
+
+    def __init__(self, hdmap: HdMap, provider: Provider | None) -> None:
+        self.service = LaasService(hdmap, worker=WorkerConfig(max_past=1e9, max_speedup=1e9))
+        # Never started: no connection is made; `open` and `seal` are its worker
+        # thread's code.
+        self.provider = Provider.create(
+            "mqtt://127.0.0.1:1",
+            service_spec(),
+            self.service.handle,
+            key=None if provider is None else provider.key,
+            max_age=1e9,
+        )
+        self.t_open = self.t_handle = self.t_seal = 0.0
+        self.answered = 0
+
+    def feed(self, messages: list[Message], batch: int) -> None:
+        for k in range(0, len(messages), batch):
+            t0 = time.perf_counter()
+            opened = [o for o in map(self.provider.open, messages[k : k + batch]) if o]
+            t1 = time.perf_counter()
+            requests = [request for request, _ in opened]
+            if batch == 1:
+                answers = [self.service.handle(r) for r in requests]
+            else:
+                answers = self.service.handle_many(requests)
+            t2 = time.perf_counter()
+            for (request, route), answer in zip(opened, answers, strict=True):
+                self.provider.seal(route, request.correlation_id, answer)
+                self.answered += "error" not in answer
+            t3 = time.perf_counter()
+            self.t_open += t1 - t0
+            self.t_handle += t2 - t1
+            self.t_seal += t3 - t2
+
+    def times(self, n: int) -> StageTimes:
+        engine = self.service.stats.engine_seconds
+        return StageTimes(
+            open_us=self.t_open / n * 1e6,
+            service_us=(self.t_handle - engine) / n * 1e6,
+            engine_us=engine / n * 1e6,
+            seal_us=self.t_seal / n * 1e6,
+        )
 
 
 def _filterpy_steps(count: int, rng: np.random.Generator) -> float:
@@ -108,17 +173,19 @@ def bench_worker(
     users: int = 200,
     duration: float = 50.0,
     seed: int = 0,
+    batch: int = 64,
     progress: Callable[[str], None] | None = None,
 ) -> WorkerBenchReport:
     """Feed a roaming scenario's fixes, encrypted, through the worker's code (module doc)."""
+    if batch < 1:
+        raise ValueError(f"batch must be at least 1, not {batch}")
     say = progress or (lambda _line: None)
     hdmap = HdMap.load(bundled_map(map_name))
     trace = simulate_with(
         hdmap, roam_scenario(hdmap, seed, users, duration), seed, sigma_pos=1.0, sigma_vel=0.25
     )
-    service = LaasService(hdmap, worker=WorkerConfig(max_past=1e9, max_speedup=1e9))
-    # Never started: no connection is made; `open` and `seal` are its worker thread's code.
-    provider = Provider.create("mqtt://127.0.0.1:1", service_spec(), service.handle, max_age=1e9)
+    single = _Lane(hdmap, None)
+    batched = _Lane(hdmap, single.provider)  # the same key: both open the same messages
     say(f"sealing {len(trace.fixes)} fixes of {users} users on {map_name}")
     shift = time.time() * 1000.0 - trace.fixes[0].measurement.timestamp
     sessions: dict[str, tuple[str, str]] = {}  # user -> (pseudonym, ephemeral public key)
@@ -128,7 +195,7 @@ def bench_worker(
         if fix.user not in sessions:
             pair = KeyPair()
             sessions[fix.user] = (secrets.token_hex(8), pair.public)
-            ciphers[fix.user] = pair.cipher(provider.key.public, initiator=True)
+            ciphers[fix.user] = pair.cipher(single.provider.key.public, initiator=True)
         pseudonym, public = sessions[fix.user]
         m = fix.measurement.model_copy(update={"timestamp": int(fix.measurement.timestamp + shift)})
         c, t = secrets.token_hex(8), time.time()
@@ -138,41 +205,26 @@ def bench_worker(
         messages.append(Message(topic, env.encode(), 1, False, "bench"))
 
     rng = np.random.default_rng(seed)
-    t_open = t_handle = t_seal = t_filterpy = 0.0
-    engine_before = service.stats.engine_seconds
-    answered = 0
+    t_filterpy = 0.0
+    chunk = max(_CHUNK // batch, 1) * batch  # whole batches per chunk
     start = time.perf_counter()
-    for k in range(0, len(messages), _CHUNK):
-        for msg in messages[k : k + _CHUNK]:
-            t0 = time.perf_counter()
-            opened = provider.open(msg)
-            t1 = time.perf_counter()
-            if opened is None:
-                continue
-            request, route = opened
-            answer = service.handle(request)
-            t2 = time.perf_counter()
-            provider.seal(route, request.correlation_id, answer)
-            t3 = time.perf_counter()
-            t_open += t1 - t0
-            t_handle += t2 - t1
-            t_seal += t3 - t2
-            answered += "error" not in answer
-        t_filterpy += _filterpy_steps(min(_CHUNK, len(messages) - k), rng)
-        if (k // _CHUNK) % 8 == 7:
-            say(f"{k + _CHUNK} of {len(messages)} fixes")
+    for k in range(0, len(messages), chunk):
+        part = messages[k : k + chunk]
+        batched.feed(part, batch)
+        single.feed(part, 1)
+        t_filterpy += _filterpy_steps(len(part), rng)
+        if (k // chunk) % 8 == 7:
+            say(f"{k + len(part)} of {len(messages)} fixes")
     seconds = time.perf_counter() - start
     n = len(messages)
-    engine = service.stats.engine_seconds - engine_before
     return WorkerBenchReport(
         map=map_name,
         users=users,
         fixes=n,
-        answered=answered,
-        open_us=t_open / n * 1e6,
-        service_us=(t_handle - engine) / n * 1e6,
-        engine_us=engine / n * 1e6,
-        seal_us=t_seal / n * 1e6,
+        answered=min(single.answered, batched.answered),
+        batch=batch,
+        single=single.times(n),
+        batched=batched.times(n),
         filterpy_us=t_filterpy / n * 1e6,
         seconds=seconds,
     )
@@ -181,19 +233,21 @@ def bench_worker(
 def format_worker_report(r: WorkerBenchReport) -> str:
     """The report as a table."""
     rows = [
-        ("open (envelope, decryption, JSON)", r.open_us),
-        ("service (validation, checks, answer)", r.service_us),
-        ("engine", r.engine_us),
-        ("seal (JSON, encryption, envelope)", r.seal_us),
-        ("total", r.total_us),
+        ("open (envelope, decryption, JSON)", "open_us"),
+        ("service (validation, checks, answer)", "service_us"),
+        ("engine", "engine_us"),
+        ("seal (JSON, encryption, envelope)", "seal_us"),
+        ("total", "total_us"),
     ]
+    one, many = r.single, r.batched
     lines = [
         f"worker alone, one core: {r.fixes} fixes of {r.users} users on {r.map}, "
-        f"{r.answered} answered",
-        f"{'stage':40s} {'us/fix':>8s}",
-        *(f"{name:40s} {us:8.1f}" for name, us in rows),
-        f"fixes/s on one core: {r.fixes_per_second:,.0f}",
+        f"{r.answered} answered both ways",
+        f"{'us/fix':40s} {'one at a time':>14s} {f'batches of {r.batch}':>14s}",
+        *(f"{name:40s} {getattr(one, key):14.1f} {getattr(many, key):14.1f}" for name, key in rows),
+        f"{'fixes/s on one core':40s} {one.fixes_per_second:14,.0f} {many.fixes_per_second:14,.0f}",
         f"filterpy predict + update, same run: {r.filterpy_us:.1f} us; "
-        f"engine / filterpy = {r.engine_per_filterpy:.2f}",
+        f"engine / filterpy = {one.engine_us / r.filterpy_us:.2f} one at a time, "
+        f"{r.engine_per_filterpy:.2f} in batches",
     ]
     return "\n".join(lines)

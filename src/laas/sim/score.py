@@ -46,11 +46,16 @@ class RunResult:
 
 
 def answer_trace(
-    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None
+    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None, batch: int = 1
 ) -> list[CorrectedPosition | None]:
-    """A fresh engine's answer to every fix of a simulated trace, in order."""
+    """A fresh engine's answer to every fix of a simulated trace, in order, given to
+    it `batch` fixes at a time (`Engine.process_many`; the answers are the same)."""
     engine = Engine(hdmap, config)
-    return [engine.process(f.user, f.measurement) for f in trace.fixes]
+    fixes = [(f.user, f.measurement) for f in trace.fixes]
+    out: list[CorrectedPosition | None] = []
+    for i in range(0, len(fixes), batch):
+        out.extend(engine.process_many(fixes[i : i + batch]))
+    return out
 
 
 def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:

@@ -13,7 +13,14 @@ import pytest
 
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
-from laas.run.bench import ROTATION_OFF, BenchConfig, bench_scenario, format_report, run_bench
+from laas.run.bench import (
+    ROTATION_OFF,
+    STAGES,
+    BenchConfig,
+    bench_scenario,
+    format_report,
+    run_bench,
+)
 from laas.sim.scenario import ErrorModel, simulate
 from ldm.pytest_plugin import need_mosquitto
 
@@ -46,6 +53,15 @@ def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> Non
     assert report.overhead > 0 and math.isfinite(report.overhead)
     assert report.throughput > 0
     assert report.worker_answered == report.sent
+    # Every stage timed for every fix, joined by correlation id across the processes,
+    # and the stages of one trip add up to no more than the round trips measured.
+    assert [name for name, _, _ in STAGES] == list(report.stages)
+    for name, lat in report.stages.items():
+        assert lat.n == report.sent, name
+        assert lat.p50 <= lat.p99 <= lat.max, name
+    assert sum(lat.mean for lat in report.stages.values()) <= report.ldm.mean
+    cpu = report.cpu_per_1000()
+    assert all(0 < v < 1000 for v in cpu.values()), cpu
 
     rotating, fixed = report.privacy
     assert rotating.rotation_period == 20.0 and fixed.rotation_period == ROTATION_OFF
@@ -61,6 +77,7 @@ def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> Non
     assert "rotation every 20 s" in text and "rotation off" in text
     assert json.loads(json.dumps(report.as_dict()))["share_answered"] == 1.0
     assert any("sessions open" in line for line in lines)
+    assert "queue wait in the worker" in text and "CPU s per 1,000 fixes" in text
 
 
 def test_bench_participants_stay_on_the_road(hamburg_map: HdMap) -> None:

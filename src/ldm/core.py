@@ -47,6 +47,7 @@ from ldm import topics
 from ldm._worker import Worker
 from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.crypto import KeyPair, input_tag
+from ldm.hops import Hops
 from ldm.identity import SigningKey, verify
 from ldm.intake import FairQueue
 from ldm.messages import (
@@ -354,6 +355,8 @@ class Core(Worker[Event]):
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
+        self.hops: Hops | None = None
+        """Set to note when each input passes this core (`ldm.hops`; `laas bench`)."""
         self._services: dict[str, _Service] = {}
         self._sessions: dict[tuple[str, str], _Session] = {}
         self._pseudonyms: dict[str, _Session] = {}
@@ -645,6 +648,8 @@ class Core(Worker[Event]):
             env = Envelope.model_validate_json(msg.payload)
             if self._stale(env):
                 return
+            if self.hops is not None:
+                self.hops.mark("service_core", env.c)
             svc = self._services.get(service)
             if svc is None or svc.origin != self.name:
                 self.stats.dropped_unroutable += 1
@@ -1025,6 +1030,9 @@ class Core(Worker[Event]):
             self._reject(client, service, "rate_limited", error, c=env.c)
             return
         payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
+        if self.hops is not None:
+            self.hops.mark("sent", env.c, env.t)
+            self.hops.mark("user_core", env.c, now)
         if svc.origin == self.name:
             self.cluster.publish(
                 topics.provider_input(service, pseudonym), payload, self.config.data_qos
@@ -1096,6 +1104,8 @@ class Core(Worker[Event]):
         self.cluster.publish(
             topics.participant_reply(session.client, service), reply, self.config.data_qos
         )
+        if self.hops is not None:
+            self.hops.mark("delivered", env.c)
         self.stats.forwarded_out += 1
 
     def _expire_sessions(self, now: float) -> None:

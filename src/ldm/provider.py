@@ -32,6 +32,7 @@ from ldm._worker import Worker
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import CryptoError, SessionError
+from ldm.hops import Hops
 from ldm.identity import SigningKey
 from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
 from ldm.transport import Connected, Event, Message, Transport, Will
@@ -146,6 +147,9 @@ class Provider(Worker[Event]):
         self._goodbye = goodbye.model_dump_json().encode()
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
+        self.hops: Hops | None = None
+        """Set to note when each input passes this provider (`ldm.hops`; `laas bench`)."""
+        self._arrived: dict[int, float] = {}  # id(message) -> arrival, while hops are noted
         self._handler = handler
         self._batch_handler = batch_handler
         self._peers: OrderedDict[str, _Peer] = OrderedDict()
@@ -220,6 +224,11 @@ class Provider(Worker[Event]):
     def overflowed(self) -> None:
         self.stats.dropped_overload += 1
 
+    def sink(self, item: Event) -> None:
+        if self.hops is not None and isinstance(item, Message):
+            self._arrived[id(item)] = time.time()  # paho's thread; `open` takes it
+        super().sink(item)
+
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
@@ -271,6 +280,8 @@ class Provider(Worker[Event]):
         request, route = opened
         try:
             answer = self._handler(request)
+            if self.hops is not None:
+                self.hops.mark("answered", request.correlation_id)
             if answer is not None:
                 self._send(route, request.pseudonym, request.correlation_id, answer)
         except Exception:
@@ -286,6 +297,9 @@ class Provider(Worker[Event]):
             return
         try:
             answers = self._batch_handler([request for request, _ in opened])
+            if self.hops is not None:
+                for request, _ in opened:
+                    self.hops.mark("answered", request.correlation_id)
             if len(answers) != len(opened):
                 raise ValueError(f"{len(answers)} replies to a batch of {len(opened)}")
         except Exception:
@@ -302,6 +316,7 @@ class Provider(Worker[Event]):
         (and counted) if it is oversize, invalid, stale or a replay. The worker thread's
         first step, apart so `laas bench --worker-only` can time it."""
         pseudonym = msg.topic.rsplit("/", 1)[-1]
+        arrived = self._arrived.pop(id(msg), None) if self.hops is not None else None
         if len(msg.payload) > self.config.max_payload:
             self.stats.dropped_oversize += 1
             return None
@@ -330,6 +345,9 @@ class Provider(Worker[Event]):
         if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
         self.stats.requests += 1
+        if self.hops is not None and arrived is not None:
+            self.hops.mark("arrived", env.c, arrived)
+            self.hops.mark("taken", env.c, now)
         return Request(pseudonym, env.c, payload, env.t, new), route
 
     @staticmethod

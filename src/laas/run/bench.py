@@ -72,9 +72,11 @@ from laas.sim.scenario import (
 from laas.sim.score import score
 from ldm import BrokerSettings, Session
 from ldm.brokers import find_mosquitto
+from ldm.hops import Hops
 from ldm.transport import Event, Message, Transport
 
 __all__ = [
+    "STAGES",
     "BenchConfig",
     "BenchReport",
     "Latency",
@@ -179,6 +181,8 @@ class BenchReport:
     ramp: float = math.nan  # s from the first connection to the last session open
     cpu_participants: float = math.nan  # CPU s per s of sending, all participant processes
     cpu_cores: float = math.nan  # CPU s per s of sending, the process of the two cores
+    stages: dict[str, Latency] = field(default_factory=dict)  # each stage, by `STAGES` name
+    cpu_worker: float = math.nan  # CPU s of the worker process while it served
     privacy: list[PrivacyRun] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
 
@@ -196,14 +200,40 @@ class BenchReport:
         """p50 of the LDM round trip over p50 of the bare MQTT echo."""
         return self.ldm.p50 / self.bare.p50 if self.bare.p50 > 0 else math.nan
 
+    def cpu_per_1000(self) -> dict[str, float]:
+        """CPU seconds per 1,000 fixes sent, by process (the brokers not counted)."""
+        k = 1000.0 / self.sent if self.sent else math.nan
+        return {
+            "participants": self.cpu_participants * self.duration * k,
+            "cores": self.cpu_cores * self.duration * k,
+            "worker": self.cpu_worker * k,
+        }
+
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d.update(
             share_answered=self.share_answered,
             throughput=self.throughput,
             overhead=self.overhead,
+            cpu_per_1000=self.cpu_per_1000(),
         )
         return d
+
+
+STAGES = (
+    ("participant -> user core", "sent", "user_core"),
+    ("user core -> service core", "user_core", "service_core"),
+    ("service core -> worker", "service_core", "arrived"),
+    ("queue wait in the worker", "arrived", "taken"),
+    ("worker: open, engine, checks", "taken", "answered"),
+    ("worker -> user core (reply)", "answered", "delivered"),
+)
+"""The stages `laas bench` times: (name, from point, to point) of `ldm.hops`."""
+
+
+def stage_latencies(hops: Hops) -> dict[str, Latency]:
+    """Each stage's latency over the messages that passed both its points."""
+    return {name: Latency.of(hops.stage(a, b)) for name, a, b in STAGES}
 
 
 # --- the participants' drive --------------------------------------------------------
@@ -401,11 +431,14 @@ def _kind(brokers: BrokerChoice) -> Literal["mosquitto", "embedded-process"]:
 
 
 def _deployment(
-    kind: Literal["mosquitto", "embedded-process"], hdmap: HdMap, rotation_period: float
+    kind: Literal["mosquitto", "embedded-process"],
+    hdmap: HdMap,
+    rotation_period: float,
+    hops: Hops | None = None,
 ) -> LocalDeployment:
     """The three brokers, the two cores in this process and the worker in its own."""
     return LocalDeployment(
-        hdmap, brokers=kind, rotation_period=rotation_period, worker_process=True
+        hdmap, brokers=kind, rotation_period=rotation_period, worker_process=True, hops=hops
     )
 
 
@@ -581,10 +614,13 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
         f"{'spread over' if config.spread else 'on'} the period) on {kind} brokers; "
         f"connecting {config.connect_rate:g}/s"
     )
-    deployment = _deployment(kind, hdmap, config.rotation_period)
+    hops = Hops()
+    deployment = _deployment(kind, hdmap, config.rotation_period, hops)
     with deployment:
         report = _load(config, deployment, trace, say)
     report.worker_answered = deployment.worker_answered
+    report.cpu_worker = deployment.worker_cpu
+    report.stages = stage_latencies(hops)
     for period in (config.rotation_period, ROTATION_OFF) if config.privacy else ():
         label = "off" if period == ROTATION_OFF else f"every {period:g} s"
         say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")
@@ -619,8 +655,23 @@ def format_report(r: BenchReport) -> str:
         f"{r.dropped_stale} dropped as stale by the cores",
         f"throughput   {r.throughput:.1f} corrected positions/s "
         f"({r.sent / r.elapsed if r.elapsed else 0:.1f} fixes/s sent)",
-        f"CPU          {r.cpu_participants:.2f} s/s in the participant processes, "
-        f"{r.cpu_cores:.2f} s/s in the cores' process (brokers and worker not counted)",
+    ]
+    if r.stages:
+        lines += [
+            "",
+            f"{'each stage, ms':<34}{'n':>7}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'max':>9}",
+        ]
+        for name, lat in r.stages.items():
+            lines.append(
+                f"{name:<34}{lat.n:>7}{lat.p50:>9.2f}{lat.p95:>9.2f}{lat.p99:>9.2f}"
+                f"{lat.mean:>9.2f}{lat.max:>9.2f}"
+            )
+        lines.append("(the participant's receipt of the reply is in the round trip above)")
+    cpu = r.cpu_per_1000()
+    lines += [
+        "",
+        f"CPU s per 1,000 fixes: participants {cpu['participants']:.2f}, "
+        f"cores {cpu['cores']:.2f}, worker {cpu['worker']:.2f} (brokers not counted)",
     ]
     if r.privacy:
         lines += ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]

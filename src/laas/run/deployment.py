@@ -14,7 +14,10 @@ can read a fix or answer in the worker's name (docs/security.md).
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
+import queue
+import time
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -25,6 +28,7 @@ from laas.map.hdmap import HdMap
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
 from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
+from ldm.hops import Hops
 from ldm.identity import SigningKey
 
 __all__ = ["BrokerChoice", "LocalDeployment"]
@@ -52,6 +56,7 @@ class LocalDeployment:
         rotation_period: float = 120.0,
         data_qos: int = 0,
         worker_process: bool = False,
+        hops: Hops | None = None,
     ) -> None:
         if worker_process and not Path(hdmap.source).is_file():
             raise ConfigError(
@@ -71,8 +76,12 @@ class LocalDeployment:
         self.service: LaasService | None = None  # the worker's, when it runs in this process
         self.identity = SigningKey.generate()
         """The laas worker's identity, pinned by the cores and by `trust`'s participants."""
+        self.hops = hops
+        """Where the cores and the worker note each input's passage (`ldm.hops`)."""
         self._worker: _WorkerProcess | None = None
         self._worker_answered = -1
+        self.worker_cpu = math.nan
+        """CPU seconds of the worker process while it served, known once it has stopped."""
 
     @property
     def user_url(self) -> str:
@@ -107,14 +116,19 @@ class LocalDeployment:
                     rotation_period=self.rotation_period,
                     data_qos=self.data_qos,
                     service_keys={"laas": self.identity.public},
-                ).start()
+                )
+                self.cores[name].hops = self.hops
+                self.cores[name].start()
             url = self.brokers["service"].url
             if self.worker_process:
-                self._worker = _WorkerProcess(url, self.hdmap, self.config, self.identity)
+                self._worker = _WorkerProcess(
+                    url, self.hdmap, self.config, self.identity, self.hops is not None
+                )
             else:
                 self.provider, self.service = start_worker(
                     url, self.hdmap, self.config, identity=self.identity
                 )
+                self.provider.hops = self.hops
         except BaseException:
             self.stop()
             raise
@@ -125,7 +139,9 @@ class LocalDeployment:
             self.provider.stop()
             self.provider = None
         if self._worker is not None:
-            self._worker_answered = self._worker.stop()
+            self._worker_answered, self.worker_cpu, marks = self._worker.stop()
+            if self.hops is not None and marks:
+                self.hops.merge(marks)
             self._worker = None
         for core in self.cores.values():
             core.stop()
@@ -150,15 +166,20 @@ class _WorkerProcess:
     """`laas worker` in a spawned child process, serving until `stop`."""
 
     def __init__(
-        self, url: str, hdmap: HdMap, config: EngineConfig | None, identity: SigningKey
+        self,
+        url: str,
+        hdmap: HdMap,
+        config: EngineConfig | None,
+        identity: SigningKey,
+        hops: bool = False,
     ) -> None:
         ctx = mp.get_context("spawn")
         self._ready, self._stop = ctx.Event(), ctx.Event()
-        self._answered = ctx.Value("q", -1)
+        self._results: Any = ctx.Queue()
         pem = identity.to_pem()  # through the process pipe, never a file or a log
         self._process = ctx.Process(
             target=_serve,
-            args=(url, hdmap.source, config, pem, self._ready, self._stop, self._answered),
+            args=(url, hdmap.source, config, pem, self._ready, self._stop, self._results, hops),
             name="laas-worker",
         )
         self._process.start()
@@ -173,14 +194,19 @@ class _WorkerProcess:
                     else f"the laas worker process exited (code {self._process.exitcode})"
                 )
 
-    def stop(self) -> int:
-        """Stop the worker; the number of fixes it answered (-1 if it did not say)."""
+    def stop(self) -> tuple[int, float, dict[str, dict[str, float]]]:
+        """Stop the worker: the fixes it answered (-1 if it did not say), its CPU seconds
+        and its hop marks."""
         self._stop.set()
+        try:
+            answered, cpu, marks = self._results.get(timeout=15.0)
+        except queue.Empty:
+            answered, cpu, marks = -1, math.nan, {}
         self._process.join(15.0)
         if self._process.is_alive():
             self._process.kill()
             self._process.join(5.0)
-        return int(self._answered.value)
+        return int(answered), float(cpu), marks
 
 
 def _serve(
@@ -190,12 +216,17 @@ def _serve(
     pem: bytes,
     ready: Any,
     stop: Any,
-    answered: Any,
+    results: Any,
+    hops: bool,
 ) -> None:
-    """The worker process: serve until `stop` is set, then leave the answer count."""
+    """The worker process: serve until `stop` is set, then leave what it did."""
     identity = SigningKey.from_pem(pem)
     provider, service = start_worker(url, HdMap.load(map_path), config, identity=identity)
+    if hops:
+        provider.hops = Hops()
+    cpu0 = time.process_time()
     ready.set()
     stop.wait()
     provider.stop()
-    answered.value = service.stats.answered
+    marks = provider.hops.marks if provider.hops is not None else {}
+    results.put((service.stats.answered, time.process_time() - cpu0, marks))

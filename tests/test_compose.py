@@ -560,6 +560,10 @@ class LocalCompose:
     def env(self, service: Service) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if not k.startswith(("LAAS_", "LDM_"))}
         env.update({k: self.local(v, service) for k, v in environment(service).items()})
+        for prefix in ("LDM", "LAAS"):  # a metrics port per container in compose; here
+            if f"{prefix}_METRICS_PORT" in env:  # all share this host: a free port each
+                env[f"{prefix}_METRICS_PORT"] = "0"
+                env[f"{prefix}_METRICS_HOST"] = "127.0.0.1"
         env["PYTHONUNBUFFERED"] = "1"
         return env
 

@@ -17,10 +17,12 @@ from laas.map.bundled import maps_dir
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
-from ldm.cli import broker_settings, wait_for_signal
+from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
+from ldm.logs import configure
 
 if TYPE_CHECKING:
     from laas.sim.scenario import Scenario
+    from ldm.metrics import Metrics
 
 __all__ = ["main"]
 
@@ -248,12 +250,23 @@ def _broker(a: argparse.Namespace) -> BrokerSettings:
 
 
 def _cmd_worker(a: argparse.Namespace) -> int:
+    configure(
+        a.log_format,
+        component="laas-worker",
+        level=getattr(logging, a.log_level.upper()),
+        text_format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
+    )
+    served = start_metrics(a, "laas worker")  # /readyz: 503 until the worker is connected
+    try:
+        return _serve_worker(a, None if served is None else served[0])
+    finally:
+        if served is not None:
+            served[1].stop()
+
+
+def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
     from laas.service import start_worker
 
-    logging.basicConfig(
-        level=getattr(logging, a.log_level.upper()),
-        format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
-    )
     hdmap = HdMap.load(a.map)
     provider, service = start_worker(
         _broker(a),
@@ -263,6 +276,10 @@ def _cmd_worker(a: argparse.Namespace) -> int:
         identity_file=a.identity,
         endorsement=a.endorsement,
     )
+    if metrics is not None:
+        from laas.metrics import watch_worker
+
+        watch_worker(metrics, provider, service)
     print(
         f"laas worker: serving {len(hdmap.segments)} road elements of {a.map} "
         f"on {a.cluster} ({a.mode} mode); identity (participants pin it): "
@@ -441,6 +458,16 @@ def _cmd_map_show(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_asyncapi(a: argparse.Namespace) -> int:
+    from laas.asyncapi import laas_document_text, write_document
+
+    if a.out is None:
+        sys.stdout.write(laas_document_text())
+    else:
+        print(f"laas asyncapi: wrote {write_document(Path(a.out))}", file=sys.stderr)
+    return 0
+
+
 def _scenario_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="messe-hamburg", help="built-in scenario")
     p.add_argument(
@@ -558,6 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a trust anchor's endorsement of the identity (`ldm keys endorse`)",
     )
     _engine_args(p)
+    operations_args(p, "LAAS")
     p.set_defaults(func=_cmd_worker)
 
     p = sub.add_parser("simulate", help="run a scenario's road users as live LDM participants")
@@ -651,6 +679,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", required=True, help="the PNG to write")
     q.add_argument("--ids", action="store_true", help="write the segment ids")
     q.set_defaults(func=_cmd_map_show)
+
+    p = sub.add_parser(
+        "asyncapi", help="write the AsyncAPI 3.0 document of the LDM topics and laas messages"
+    )
+    p.add_argument("--out", help="the file to write (JSON; default: stdout)")
+    p.set_defaults(func=_cmd_asyncapi)
 
     p = sub.add_parser("scenario", help="write a simulated trace and its ground truth")
     _scenario_args(p)

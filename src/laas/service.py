@@ -149,6 +149,9 @@ class LaasService:
         self._wall = wall_clock
         self._next_expiry = clock() + self.config.expire_every
         self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
+        self.timer: Callable[[str, float], None] | None = None
+        """Told ("engine", seconds) for each batch the engine answers; None: not timed
+        (`laas.metrics.watch_worker` sets it)."""
 
     @property
     def sessions(self) -> int:
@@ -185,7 +188,10 @@ class LaasService:
                 for i, _, _ in work:
                     replies[i] = failed
                 return replies
-            self.stats.engine_seconds += time.perf_counter() - started
+            spent = time.perf_counter() - started
+            self.stats.engine_seconds += spent
+            if self.timer is not None:
+                self.timer("engine", spent)
             for (i, _, m), answer in zip(work, answers, strict=True):
                 replies[i] = self._reply(m, answer)
         self._housekeep(now)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -28,14 +29,18 @@ from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core import Core
 from ldm.errors import ConfigError, LdmError, PasswordFileError
 from ldm.identity import SigningKey, endorse
+from ldm.logs import LOG_FORMATS, configure
+from ldm.metrics import Metrics, MetricsServer
 from ldm.passwd import random_password, set_passwords
 
 __all__ = [
     "broker_settings",
     "core_config",
     "main",
+    "operations_args",
     "password_entries",
     "pins",
+    "start_metrics",
     "wait_for_signal",
 ]
 
@@ -102,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="KEY",
         help="take services whose identity this anchor endorsed (repeatable)",
     )
+    operations_args(core, "LDM")
 
     keys = sub.add_parser("keys", help="make and show Ed25519 identity keys")
     keys_sub = keys.add_subparsers(dest="keys_command", required=True)
@@ -252,6 +258,27 @@ def wait_for_signal() -> None:
     stop.wait()
 
 
+def _core(args: argparse.Namespace) -> None:
+    """`ldm core`: serve until SIGINT or SIGTERM (metrics from before it connects)."""
+    core = Core(core_config(args))
+    served = start_metrics(args, f"ldm core {args.name}")
+    try:
+        if served is not None:
+            served[0].watch_core(core)
+        core.start(timeout=30)
+        backbone = f" and {args.backbone}" if args.backbone else ""
+        print(
+            f"ldm core {args.name} running on {args.cluster}{backbone}; "
+            f"its key (participants pin it): {core.public_key}",
+            flush=True,
+        )
+        wait_for_signal()
+        core.stop()
+    finally:
+        if served is not None:
+            served[1].stop()
+
+
 def _passwd(args: argparse.Namespace) -> int:
     """`ldm passwd`: errors go to stderr, stdout carries only the generated passwords."""
     try:
@@ -268,14 +295,53 @@ def _passwd(args: argparse.Namespace) -> int:
     return 0
 
 
+def operations_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
+    """The options of a long-running command for its operators: metrics and log format."""
+    p.add_argument(
+        "--metrics-port",
+        type=int,
+        metavar="PORT",
+        default=os.environ.get(f"{env_prefix}_METRICS_PORT"),
+        help="serve /metrics, /healthz and /readyz on this port; 0 picks a free one "
+        f"(env {env_prefix}_METRICS_PORT; default: no metrics server)",
+    )
+    p.add_argument(
+        "--metrics-host",
+        metavar="HOST",
+        default=os.environ.get(f"{env_prefix}_METRICS_HOST", "127.0.0.1"),
+        help=f"address of the metrics server (env {env_prefix}_METRICS_HOST; default "
+        "127.0.0.1; 0.0.0.0 in a container)",
+    )
+    p.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        default=None,
+        help="text, or json: one JSON object per line with component and event "
+        "(default: env LDM_LOG_FORMAT, else text)",
+    )
+
+
+def start_metrics(args: argparse.Namespace, who: str) -> tuple[Metrics, MetricsServer] | None:
+    """The metrics server `operations_args` asked for (None: none), serving at once:
+    /readyz says 503 until the components it is given are connected."""
+    if args.metrics_port is None:
+        return None
+    metrics = Metrics()
+    server = metrics.serve(args.metrics_host, args.metrics_port)
+    print(f"{who}: metrics on {server.url} (and /healthz, /readyz)", flush=True)
+    return metrics, server
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `ldm` command line and return its exit status."""
     args = _parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
     try:
+        component = f"ldm-core-{args.name}" if args.command == "core" else f"ldm-{args.command}"
+        configure(
+            getattr(args, "log_format", None),
+            component=component,
+            level=logging.INFO if args.verbose else logging.WARNING,
+        )
         if args.command == "passwd":
             return _passwd(args)
         if args.command == "keys":
@@ -286,15 +352,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             wait_for_signal()
             broker.stop()
         else:
-            core = Core(core_config(args)).start(timeout=30)
-            backbone = f" and {args.backbone}" if args.backbone else ""
-            print(
-                f"ldm core {args.name} running on {args.cluster}{backbone}; "
-                f"its key (participants pin it): {core.public_key}",
-                flush=True,
-            )
-            wait_for_signal()
-            core.stop()
+            _core(args)
     except LdmError as exc:
         print(f"ldm: {exc}", flush=True)
         return 2

@@ -38,6 +38,7 @@ import secrets
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -368,6 +369,10 @@ class Core(Worker[Event]):
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
         self.trust = Trust(config.service_keys, config.anchors)
+        self.timer: Callable[[str, float], None] | None = None
+        """Told (stage, seconds) for each participant message admitted on paho's threads
+        (``admit``) and each event handled on the worker thread (``route``); None: not
+        timed (`ldm.metrics.Metrics.watch_core` sets it)."""
         self.cluster = Transport(
             config.cluster, client_id=f"ldm-core-{self.name}", sink=self.sink, name=_CLUSTER
         )
@@ -451,6 +456,16 @@ class Core(Worker[Event]):
     def session_count(self) -> int:
         return len(self._sessions)
 
+    @property
+    def pseudonym_count(self) -> int:
+        """Live pseudonyms of this cluster's participants (current and in their grace)."""
+        return len(self._pseudonyms)
+
+    @property
+    def route_count(self) -> int:
+        """Pseudonyms of other clusters' participants whose replies this core routes."""
+        return len(self._routes)
+
     # --- intake (paho's threads) ---------------------------------------------------------
 
     def sink(self, item: Event) -> None:
@@ -462,7 +477,13 @@ class Core(Worker[Event]):
         if not isinstance(item, Message):
             super().sink(item)
         elif item.source == _CLUSTER and item.topic.startswith(_UP):
-            self._admit(item)
+            timer = self.timer
+            if timer is None:
+                self._admit(item)
+            else:
+                started = time.perf_counter()
+                self._admit(item)
+                timer("admit", time.perf_counter() - started)
         else:
             pseudonym = pseudonym_of(item.topic)
             if pseudonym is None:
@@ -574,6 +595,17 @@ class Core(Worker[Event]):
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
+        timer = self.timer
+        if timer is None:
+            self._handle(item)
+            return
+        started = time.perf_counter()
+        try:
+            self._handle(item)
+        finally:
+            timer("route", time.perf_counter() - started)
+
+    def _handle(self, item: Event) -> None:
         if isinstance(item, Connected):
             self._on_connected(item.source)
             return
@@ -585,7 +617,12 @@ class Core(Worker[Event]):
                 self._from_backbone(item, levels)
         except ValidationError:
             self.stats.dropped_invalid += 1
-            log.debug("%s: dropped a malformed message on %s", self.name, item.topic)
+            log.debug(
+                "%s: dropped a malformed message on %s",
+                self.name,
+                item.topic,
+                extra={"event": "malformed_message"},
+            )
 
     def tick(self, now: float) -> None:
         self._expire_services(now)
@@ -841,7 +878,10 @@ class Core(Worker[Event]):
         if ann.t > now + self.config.max_clock_skew:
             self.stats.dropped_invalid += 1
             log.warning(
-                "%s: announcement of %s from the future dropped", self.name, ann.service.name
+                "%s: announcement of %s from the future dropped",
+                self.name,
+                ann.service.name,
+                extra={"event": "announcement_from_future"},
             )
             return False
         if ann.t + self.config.service_ttl <= now:
@@ -854,6 +894,7 @@ class Core(Worker[Event]):
                 self.name,
                 ann.service.name,
                 self.trust.problem(ann.service) or "its time is not signed by its identity",
+                extra={"event": "announcement_untrusted"},
             )
             return False
         return True
@@ -892,7 +933,7 @@ class Core(Worker[Event]):
         svc = self._services.pop(service, None)
         if svc is None:
             return
-        log.info("%s: service %s is gone", self.name, service)
+        log.info("%s: service %s is gone", self.name, service, extra={"event": "service_gone"})
         if svc.origin == self.name and self.backbone is not None:
             self.backbone.publish(topics.bb_announce(service), b"", qos=1, retain=True)
         self._publish_list()
@@ -927,7 +968,11 @@ class Core(Worker[Event]):
             return
         self.stats.repaired_list += 1
         if self._repairs.take(time.time(), _REPAIR_RATE, _REPAIR_RATE):
-            log.warning("%s: the service list on the cluster was not ours; repaired", self.name)
+            log.warning(
+                "%s: the service list on the cluster was not ours; repaired",
+                self.name,
+                extra={"event": "service_list_repaired"},
+            )
             self.cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)
 
     # --- participant sessions ---------------------------------------------------------

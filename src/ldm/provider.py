@@ -149,6 +149,10 @@ class Provider(Worker[Event]):
         self.stats = ProviderStats()
         self.hops: Hops | None = None
         """Set to note when each input passes this provider (`ldm.hops`; `laas bench`)."""
+        self.timer: Callable[[str, float], None] | None = None
+        """Told (stage, seconds) for each input opened (``open``), each reply sealed
+        (``seal``) and each turn of the handler (``step``); None: not timed
+        (`ldm.metrics.Metrics.watch_provider` sets it)."""
         self._arrived: dict[int, float] = {}  # id(message) -> arrival, while hops are noted
         self._handler = handler
         self._batch_handler = batch_handler
@@ -273,13 +277,22 @@ class Provider(Worker[Event]):
             self._peers.move_to_end(key)
         return peer
 
+    def _timed(self, stage: str, started: float) -> None:
+        timer = self.timer
+        if timer is not None:
+            timer(stage, time.perf_counter() - started)
+
     def _input(self, msg: Message) -> None:
+        started = time.perf_counter()
         opened = self.open(msg)
+        self._timed("open", started)
         if opened is None:
             return
         request, route = opened
         try:
+            started = time.perf_counter()
             answer = self._handler(request)
+            self._timed("step", started)
             if self.hops is not None:
                 self.hops.mark("answered", request.correlation_id)
             if answer is not None:
@@ -292,11 +305,19 @@ class Provider(Worker[Event]):
     def _inputs(self, messages: list[Message]) -> None:
         """A batch of input: opened one by one, answered by the batch handler at once."""
         assert self._batch_handler is not None
-        opened = [o for o in map(self.open, messages) if o is not None]
+        opened = []
+        for msg in messages:
+            started = time.perf_counter()
+            one = self.open(msg)
+            self._timed("open", started)
+            if one is not None:
+                opened.append(one)
         if not opened:
             return
         try:
+            started = time.perf_counter()
             answers = self._batch_handler([request for request, _ in opened])
+            self._timed("step", started)
             if self.hops is not None:
                 for request, _ in opened:
                     self.hops.mark("answered", request.correlation_id)
@@ -363,7 +384,9 @@ class Provider(Worker[Event]):
     def _send(
         self, route: _Reply, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
     ) -> None:
+        started = time.perf_counter()
         sealed = self.seal(route, correlation_id, payload)
+        self._timed("seal", started)
         self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
         with self._count:
             self.stats.replies += 1

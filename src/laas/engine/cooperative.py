@@ -109,6 +109,9 @@ class CooperativeLaneFilter(LaneFilter):
     def leave(self, user: str) -> None:
         self._lanes.pop(user, None)
 
+    def segment_groups(self) -> int:
+        return len({lanes.segment.id for lanes in list(self._lanes.values())})
+
     def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
         c = self.config
         area = self._errors.at(track.position)

@@ -70,6 +70,10 @@ class Engine:
         """The common-error estimates per area (empty in paper mode)."""
         return self._lanes.common_errors()
 
+    def segment_groups(self) -> int:
+        """Road elements that hold users in the lane filter now."""
+        return self._lanes.segment_groups()
+
     def process(self, user: str, measurement: GpsMeasurement) -> CorrectedPosition | None:
         """Correct one fix of `user`; None if it was a duplicate or older than the last."""
         return self.process_many([(user, measurement)])[0]

@@ -54,6 +54,10 @@ class LaneFilter(ABC):
         """The common-error estimates per area (none unless the method keeps them)."""
         return []
 
+    @abstractmethod
+    def segment_groups(self) -> int:
+        """Road elements that hold users now."""
+
 
 def make_lane_filter(config: EngineConfig) -> LaneFilter:
     """The lane filter of `config.mode`."""

@@ -189,6 +189,9 @@ class PaperLaneFilter(LaneFilter):
     def correction(self, position: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(2), self._prior
 
+    def segment_groups(self) -> int:
+        return len(self._groups)
+
     def leave(self, user: str) -> None:
         self._take_out(user)
 

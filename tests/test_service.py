@@ -116,3 +116,25 @@ def test_a_batch_gets_the_replies_one_at_a_time_would(hamburg_map: HdMap) -> Non
     assert (many.stats.invalid, many.stats.refused, many.stats.clock) == (1, 1, 1)
     kinds = [a["error"]["kind"] for a in alone if "error" in a]
     assert sorted(kinds) == ["clock", "invalid", "stale"]
+
+
+def test_an_observer_sees_each_answered_fix_and_cannot_stop_the_answers(
+    hamburg_map: HdMap,
+) -> None:
+    """The observer (a live map) gets the answered fixes of each batch with their
+    pseudonyms; refused fixes are not shown, and an observer that fails costs no reply."""
+    from laas.service import Observation
+
+    seen: list[Observation] = []
+    service = LaasService(hamburg_map, clock=Clock(), wall_clock=Clock(NOW))
+    service.observer = seen.extend
+    assert "segment" in send(service, "a", NOW)
+    assert "error" in send(service, "b", NOW, speed="fast")
+    assert [(o.pseudonym, o.answer.segment) for o in seen] == [("a", "messe-0")]
+    assert seen[0].fix.timestamp == seen[0].answer.timestamp == int(NOW * 1000)
+
+    def broken(_: object) -> None:
+        raise RuntimeError("a broken live map")
+
+    service.observer = broken
+    assert "segment" in send(service, "a", NOW + 1)

@@ -51,6 +51,7 @@ from ldm import BrokerSettings, Provider, Request, ServiceSpec
 __all__ = [
     "SERVICE_NAME",
     "LaasService",
+    "Observation",
     "WorkerConfig",
     "WorkerStats",
     "service_spec",
@@ -101,6 +102,15 @@ class _Session:
     last: float  # wall clock at its last accepted fix
 
 
+@dataclass(frozen=True, slots=True)
+class Observation:
+    """One answered fix as the worker saw it: pseudonym, the fix and the answer."""
+
+    pseudonym: str
+    fix: GpsMeasurement
+    answer: CorrectedPosition
+
+
 @dataclass
 class WorkerStats:
     """What the worker did with its input."""
@@ -149,6 +159,10 @@ class LaasService:
         self._wall = wall_clock
         self._next_expiry = clock() + self.config.expire_every
         self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
+        self.observer: Callable[[Sequence[Observation]], None] | None = None
+        """Shown every batch of answered fixes, on the worker thread (a live map);
+        None: nobody watches. It must be quick, and it learns only what the worker
+        knows: pseudonyms, fixes and answers."""
         self.timer: Callable[[str, float], None] | None = None
         """Told ("engine", seconds) for each batch the engine answers; None: not timed
         (`laas.metrics.watch_worker` sets it)."""
@@ -194,6 +208,16 @@ class LaasService:
                 self.timer("engine", spent)
             for (i, _, m), answer in zip(work, answers, strict=True):
                 replies[i] = self._reply(m, answer)
+            if self.observer is not None:
+                seen = [
+                    Observation(u, m, a)
+                    for (_, u, m), a in zip(work, answers, strict=True)
+                    if a is not None
+                ]
+                try:
+                    self.observer(seen)
+                except Exception:
+                    log.exception("the observer failed; the answers went out as usual")
         self._housekeep(now)
         return replies
 

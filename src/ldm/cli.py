@@ -1,6 +1,7 @@
 """The `ldm` command line: run a core or an embedded broker, or write a password file.
 
     ldm broker --port 1883
+    ldm nats-cluster --nodes 3 --account user --account backbone   # needs nats-server
     ldm core --name user --cluster mqtt://localhost:1883 --backbone mqtt://hub:1883
     ldm passwd deploy/security/passwd car-17 bike-42=PASSWORD
     ldm keys new laas.key            # an Ed25519 identity; prints its public key
@@ -54,10 +55,32 @@ def _parser() -> argparse.ArgumentParser:
     broker.add_argument("--host", default="127.0.0.1", help="address to listen on")
     broker.add_argument("--port", type=int, default=1883, help="port (0 picks a free one)")
 
+    nats = sub.add_parser(
+        "nats-cluster",
+        help="run a local cluster of NATS servers with MQTT and JetStream (docs/brokers.md)",
+        description="Start NODES nats-server processes on free ports of 127.0.0.1, "
+        "clustered, with JetStream and MQTT; print the cluster URL (give it to --cluster "
+        "or --backbone) and, per --account, the password of its user, once.",
+    )
+    nats.add_argument("--nodes", type=int, default=3, help="servers in the cluster (default 3)")
+    nats.add_argument(
+        "--account",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="an isolated topic space with one user NAME (repeatable: one per LDM broker)",
+    )
+
     core = sub.add_parser("core", help="run an LDM core for one cluster")
     core.add_argument("--name", required=True, help="core name, unique in the deployment")
-    core.add_argument("--cluster", required=True, help="cluster broker, mqtt[s]://HOST:PORT")
-    core.add_argument("--backbone", help="inter-cluster broker, mqtt[s]://HOST:PORT")
+    core.add_argument(
+        "--cluster",
+        required=True,
+        help="cluster broker, mqtt[s]://HOST:PORT (a clustered one: HOST:PORT,HOST:PORT,...)",
+    )
+    core.add_argument(
+        "--backbone", help="inter-cluster broker, mqtt[s]://HOST:PORT[,HOST:PORT,...]"
+    )
     core.add_argument("--ca-file", type=Path, help="CA certificates for mqtts:// brokers")
     core.add_argument("--username", help="user name on the cluster broker")
     core.add_argument("--password-env", default="LDM_PASSWORD", help="env var with its password")
@@ -332,6 +355,24 @@ def start_metrics(args: argparse.Namespace, who: str) -> tuple[Metrics, MetricsS
     return metrics, server
 
 
+def _nats_cluster(args: argparse.Namespace) -> int:
+    """`ldm nats-cluster`: stdout carries the URL and the generated passwords."""
+    from ldm.nats import NatsCluster  # only this command needs it
+
+    if args.nodes < 1:
+        raise ConfigError("--nodes must be at least 1")
+    cluster = NatsCluster(args.nodes, accounts=args.account).start()
+    try:
+        print(f"ldm nats-cluster: {args.nodes} nodes, MQTT at {cluster.url}", flush=True)
+        print(f"ldm nats-cluster: logs and stores in {cluster.directory}", flush=True)
+        for account, password in cluster.passwords.items():
+            print(f"{account}={password}", flush=True)
+        wait_for_signal()
+    finally:
+        cluster.stop()
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `ldm` command line and return its exit status."""
     args = _parser().parse_args(argv)
@@ -346,6 +387,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _passwd(args)
         if args.command == "keys":
             return _keys(args)
+        if args.command == "nats-cluster":
+            return _nats_cluster(args)
         if args.command == "broker":
             broker = EmbeddedBroker(args.host, args.port).start()
             print(f"ldm broker listening on {broker.url}", flush=True)

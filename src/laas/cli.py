@@ -695,6 +695,10 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_args(p)
     p.add_argument("--out", required=True, help="folder for the PNG files")
     p.set_defaults(func=_cmd_plot)
+
+    from laas.bridges.commands import add_bridge_commands  # owntracks, gpsd, cam
+
+    add_bridge_commands(sub, _connection_args)
     return parser
 
 

@@ -1,0 +1,201 @@
+"""The bridges' subcommands of `laas`: ``owntracks``, ``gpsd`` and ``cam`` (thin faces)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import socket
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from laas.bridges.pool import Answer, DevicePool, PoolConfig
+from laas.errors import ConfigError
+from laas.models import CorrectedPosition
+from ldm import BrokerSettings
+from ldm.cli import broker_settings, wait_for_signal
+from ldm.config import build
+
+__all__ = ["add_bridge_commands"]
+
+ConnectionArgs = Callable[[argparse.ArgumentParser, str], None]
+
+
+def _logging(a: argparse.Namespace) -> None:
+    logging.basicConfig(
+        level=getattr(logging, a.log_level.upper()),
+        format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
+    )
+
+
+def _own_broker(a: argparse.Namespace) -> BrokerSettings:
+    if not a.cluster:
+        raise ConfigError(
+            "give the user-cluster broker: --cluster mqtt://HOST:PORT (or LAAS_CLUSTER)"
+        )
+    return broker_settings(a.cluster, a.ca_file, a.username, a.password_env)
+
+
+def _pool(a: argparse.Namespace, own: BrokerSettings) -> DevicePool:
+    devices = own
+    if a.device_accounts:
+        devices = broker_settings(a.cluster, a.ca_file, "device", a.device_password_env)
+    config = build(
+        PoolConfig,
+        cluster=devices,
+        device_accounts=a.device_accounts,
+        service_keys={"laas": a.service_key} if a.service_key else {},
+        core_key=a.core_key,
+        track_timeout=a.track_timeout,
+    )
+    return DevicePool(config)
+
+
+def _pool_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device-accounts",
+        action="store_true",
+        help="log each device in as its own broker account, named as its client id "
+        "(PREFIX + names), with the password in --device-password-env",
+    )
+    p.add_argument(
+        "--device-password-env",
+        default="LAAS_DEVICE_PASSWORD",
+        help="environment variable holding the device accounts' password",
+    )
+    p.add_argument(
+        "--service-key",
+        default=os.environ.get("LAAS_SERVICE_KEY"),
+        help="pin the laas worker's identity (env LAAS_SERVICE_KEY)",
+    )
+    p.add_argument(
+        "--core-key",
+        default=os.environ.get("LAAS_CORE_KEY"),
+        help="pin the user core's key (env LAAS_CORE_KEY)",
+    )
+    p.add_argument(
+        "--track-timeout",
+        type=float,
+        default=60.0,
+        help="forget a device silent for this long, s (default 60)",
+    )
+    p.add_argument(
+        "--log-level",
+        default=os.environ.get("LAAS_LOG_LEVEL", "warning"),
+        choices=["debug", "info", "warning", "error"],
+    )
+
+
+def _serve(bridge: Any, what: str) -> int:
+    bridge.start()
+    print(f"laas {what}: serving on {bridge.transport.settings.url}", file=sys.stderr, flush=True)
+    try:
+        wait_for_signal()
+    finally:
+        bridge.stop()
+        s = bridge.pool.stats
+        print(
+            f"laas {what}: stopped; {s.opened} devices opened, {s.answered} answered, "
+            f"{s.refused} refused, {s.lost} lost, {s.malformed} malformed",
+            file=sys.stderr,
+            flush=True,
+        )
+    return 0
+
+
+def _cmd_owntracks(a: argparse.Namespace) -> int:
+    from laas.bridges.owntracks import OwnTracksBridge, OwnTracksConfig, read_secrets
+
+    _logging(a)
+    own = _own_broker(a)
+    secrets = read_secrets(a.secrets) if a.secrets else {}
+    config = build(OwnTracksConfig, prefix=a.prefix, secrets=secrets, card_name=a.card_name)
+    return _serve(OwnTracksBridge(own, _pool(a, own), config), "owntracks")
+
+
+def _cmd_cam(a: argparse.Namespace) -> int:
+    from laas.bridges.cam import CamBridge, CamConfig
+    from laas.map.hdmap import HdMap
+
+    _logging(a)
+    own = _own_broker(a)
+    config = build(CamConfig, topic_filter=a.topic, answer_topic=a.answer_topic, prefix=a.prefix)
+    return _serve(CamBridge(own, _pool(a, own), HdMap.load(a.map), config), "cam")
+
+
+def _print_answer(answer: Answer) -> None:
+    if isinstance(answer, CorrectedPosition):
+        print(answer.model_dump_json(), flush=True)
+
+
+def _cmd_gpsd(a: argparse.Namespace) -> int:
+    from laas.bridges.gpsd import gpsd_fixes, parse_address, run_receiver
+    from laas.bridges.nmea import read_nmea_file
+
+    _logging(a)
+    if (a.gpsd is None) == (a.nmea is None):
+        raise ConfigError("give one source: --gpsd HOST:PORT or --nmea FILE_OR_DEVICE")
+    own = _own_broker(a)
+    if a.gpsd is not None:
+        try:
+            host, port = parse_address(a.gpsd)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        fixes = gpsd_fixes(host, port)
+    else:
+        fixes = read_nmea_file(a.nmea)
+    with _pool(a, own) as pool:
+        try:
+            sent = run_receiver(fixes, pool, a.name, _print_answer)
+        except OSError as exc:
+            raise ConfigError(f"cannot read the receiver: {exc}") from None
+        pool.drain(a.reply_timeout)
+        s = pool.stats
+        print(
+            f"laas gpsd: {sent} fixes sent, {s.answered} answered, {s.malformed} malformed",
+            file=sys.stderr,
+        )
+    return 0
+
+
+def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
+    """Add ``owntracks``, ``gpsd`` and ``cam`` to `laas`'s subcommands."""
+    p = sub.add_parser("owntracks", help="OwnTracks phones as participants; answers as friends")
+    connection_args(p, "LAAS")
+    p.add_argument("--prefix", default="ot.", help="device client ids: PREFIX + user.device")
+    p.add_argument(
+        "--secrets",
+        type=Path,
+        help="OwnTracks payload secrets, `user-device secret` per line (keep it 0600)",
+    )
+    p.add_argument("--card-name", default="my lane position", help="the answers' name in the app")
+    _pool_args(p)
+    p.set_defaults(func=_cmd_owntracks)
+
+    p = sub.add_parser("gpsd", help="a receiver (gpsd or NMEA) as one participant")
+    connection_args(p, "LAAS")
+    p.add_argument("--gpsd", help="gpsd daemon, HOST:PORT (e.g. localhost:2947)")
+    p.add_argument("--nmea", type=Path, help="NMEA 0183 file or serial device (RMC, GGA, GST)")
+    p.add_argument(
+        "--name",
+        default=f"gpsd.{socket.gethostname().split('.')[0]}",
+        help="the receiver's client id (default gpsd.HOSTNAME)",
+    )
+    p.add_argument(
+        "--reply-timeout", type=float, default=10.0, help="wait this long for the last answers, s"
+    )
+    _pool_args(p)
+    p.set_defaults(func=_cmd_gpsd)
+
+    p = sub.add_parser("cam", help="ETSI CAM stations (its-client JSON) as participants")
+    connection_args(p, "LAAS")
+    p.add_argument("--map", required=True, help="the lane map the worker serves (lane numbers)")
+    p.add_argument("--topic", default="v2x/cam/#", help="topic filter of the CAMs")
+    p.add_argument(
+        "--answer-topic", default="laas/cam/{source_uuid}", help="topic template of the answers"
+    )
+    p.add_argument("--prefix", default="cam.", help="device client ids: PREFIX + uuid.station")
+    _pool_args(p)
+    p.set_defaults(func=_cmd_cam)

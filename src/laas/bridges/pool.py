@@ -1,0 +1,375 @@
+"""The devices a bridge serves, each one its own LDM participant.
+
+A bridge (OwnTracks, gpsd, CAM) translates a device's messages into `GpsMeasurement`s
+and hands them to a `DevicePool` under the device's name. The pool gives every device
+its own `ldm.Participant` (its own MQTT connection and client id, so its own session,
+pseudonyms and keys at the user core) the first time it is heard of, and forgets it,
+closing the participant, once it has been silent for `track_timeout` seconds.
+
+Threads: `submit`, `malformed` and `expire` may be called from any one thread (the
+bridge's). Sessions are opened on a small thread pool, so a device whose session is
+slow to open never holds up another. Answers are handed to the bridge's callback on
+the device participant's thread; the callback must not block.
+
+Nothing here logs a position, a password or a key: problems are logged by device name
+and field, at most once per device per `log_interval`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import re
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import CancelledError, Future, InvalidStateError, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from laas.errors import LaasError
+from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
+from laas.service import SERVICE_NAME
+from ldm import BrokerSettings, Participant, Session
+from ldm.topics import NAME_PATTERN
+
+__all__ = [
+    "Answer",
+    "DevicePool",
+    "LogLimiter",
+    "Malformed",
+    "PoolConfig",
+    "PoolStats",
+    "device_name",
+]
+
+log = logging.getLogger(__name__)
+
+Answer = CorrectedPosition | ErrorReply
+OnAnswer = Callable[[Answer], None]
+
+_PART = re.compile(r"^[A-Za-z0-9_-]{1,60}$")
+
+
+class Malformed(LaasError, ValueError):
+    """A device message that is not a fix; the text says why, never with the values."""
+
+
+def device_name(prefix: str, *parts: str) -> str:
+    """The client id of a device: ``prefix`` + parts joined by ".", e.g. ``ot.alice.phone``.
+
+    Parts may hold letters, digits, ``_`` and ``-`` only (no ".", so two devices never
+    share a name); ValueError names the part otherwise.
+    """
+    for part in parts:
+        if not _PART.match(part):
+            raise ValueError(f"{part!r} cannot name a device: use 1-60 letters, digits, '_' or '-'")
+    name = prefix + ".".join(parts)
+    if not NAME_PATTERN.match(name):
+        raise ValueError(f"{name!r} is not a valid MQTT client id; shorten the names")
+    return name
+
+
+class PoolConfig(BaseModel):
+    """How a bridge's device participants connect and how long they are kept."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    cluster: BrokerSettings
+    """The user-cluster broker the device participants connect to."""
+    device_accounts: bool = False
+    """Each device logs in as its own broker account, named as its client id, with the
+    password of `cluster` (for a broker with ``use_username_as_clientid``, such as the
+    compose deployment's). False: every device uses `cluster`'s account as it is."""
+    service_keys: dict[str, str] = Field(default_factory=dict)
+    anchors: list[str] = Field(default_factory=list)
+    core_key: str | None = None
+    track_timeout: float = Field(default=60.0, gt=0)
+    """A device silent for this long (s) is forgotten: its participant is closed."""
+    open_timeout: float = Field(default=10.0, gt=0)
+    """How long (s) to wait for the broker, the service list and the session grant."""
+    retry_after: float = Field(default=5.0, ge=0)
+    """After a failed open, a device's fixes are dropped for this long (s), then retried."""
+    log_interval: float = Field(default=60.0, ge=0)
+    """At most one log line per device and kind of problem per this many seconds."""
+    max_devices: int = Field(default=10_000, ge=1)
+
+
+@dataclass
+class PoolStats:
+    """Counters of one pool (read them from any thread; they only grow, but `devices`)."""
+
+    devices: int = 0  # devices held now
+    opened: int = 0  # sessions opened
+    forgotten: int = 0  # devices dropped after track_timeout of silence
+    fixes: int = 0  # fixes submitted
+    answered: int = 0  # corrected positions received
+    refused: int = 0  # error replies from the service
+    lost: int = 0  # fixes with no reply (no session, timeout, connection)
+    malformed: int = 0  # device messages that were not a fix
+    malformed_by_device: dict[str, int] = field(default_factory=dict)
+
+
+class LogLimiter:
+    """Logs a warning per key at most once per `interval` s, with how many were held back."""
+
+    def __init__(self, interval: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval = interval
+        self._clock = clock
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def warn(self, key: str, message: str, *args: object) -> bool:
+        """Log `message % args` unless `key` was logged within the interval; True if logged."""
+        now = self._clock()
+        with self._lock:
+            last = self._last.get(key)
+            if last is not None and now - last < self.interval:
+                self._held[key] = self._held.get(key, 0) + 1
+                return False
+            held = self._held.pop(key, 0)
+            if len(self._last) >= 100_000:  # bounded: forget the oldest keys
+                for old in list(self._last)[:1000]:
+                    del self._last[old]
+            self._last[key] = now
+        suffix = f" ({held} more like it since the last report)" if held else ""
+        log.warning(message + suffix, *args)
+        return True
+
+    def forget(self, prefix: str) -> None:
+        """Drop the keys that start with `prefix` (a device that was forgotten)."""
+        with self._lock:
+            for key in [k for k in self._last if k.startswith(prefix)]:
+                del self._last[key]
+                self._held.pop(key, None)
+
+
+@dataclass
+class _Device:
+    name: str
+    last_seen: float
+    opened_at: float
+    session: Future[Session] = field(default_factory=Future)
+    participant: Participant | None = None
+
+
+class DevicePool:
+    """One LDM participant per device name; use as a context manager."""
+
+    def __init__(
+        self,
+        config: PoolConfig,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        service: str = SERVICE_NAME,
+    ) -> None:
+        self.config = config
+        self.stats = PoolStats()
+        self.service = service
+        self._clock = clock
+        self._devices: dict[str, _Device] = {}
+        self._lock = threading.Lock()
+        self._executor = ThreadPoolExecutor(max_workers=4, thread_name_prefix="bridge-open")
+        self.limiter = LogLimiter(config.log_interval, clock)
+
+    # --- the bridge's thread ------------------------------------------------------------
+
+    def submit(self, name: str, fix: GpsMeasurement, on_answer: OnAnswer) -> None:
+        """Send `fix` as device `name` (opened on first use); `on_answer` gets the reply."""
+        now = self._clock()
+        with self._lock:
+            device = self._devices.get(name)
+            failed = (
+                device is not None
+                and device.session.done()
+                and (device.session.cancelled() or device.session.exception() is not None)
+            )
+            if failed and device is not None and now - device.opened_at >= self.config.retry_after:
+                self._close(device)
+                del self._devices[name]
+                device = None
+            if device is None:
+                if len(self._devices) >= self.config.max_devices:
+                    self.stats.lost += 1
+                    self.limiter.warn(
+                        f"{name}|full",
+                        "device %s: not served, the bridge already serves %d devices (max_devices)",
+                        name,
+                        len(self._devices),
+                    )
+                    return
+                device = _Device(name, now, now)
+                self._devices[name] = device
+                self.stats.devices = len(self._devices)
+                self._executor.submit(self._open, device)
+            device.last_seen = now
+            self.stats.fixes += 1
+        payload = fix.model_dump(exclude_none=True)
+        device.session.add_done_callback(lambda f: self._send(device, f, payload, on_answer))
+
+    def malformed(self, name: str, problem: str) -> None:
+        """Count a message of device `name` that was not a fix, and log it (rate-limited)."""
+        self.stats.malformed += 1
+        by_device = self.stats.malformed_by_device
+        if name in by_device or len(by_device) < self.config.max_devices:
+            by_device[name] = by_device.get(name, 0) + 1
+        self.limiter.warn(f"{name}|malformed", "device %s: malformed message: %s", name, problem)
+
+    def expire(self) -> list[str]:
+        """Forget every device silent for `track_timeout`; the names forgotten."""
+        now = self._clock()
+        with self._lock:
+            old = [
+                d for d in self._devices.values() if now - d.last_seen > self.config.track_timeout
+            ]
+            for d in old:
+                del self._devices[d.name]
+            self.stats.devices = len(self._devices)
+            self.stats.forgotten += len(old)
+        for d in old:
+            self._close(d)
+            self.limiter.forget(f"{d.name}|")
+            self.stats.malformed_by_device.pop(d.name, None)
+            log.info("device %s: silent for %.0f s, forgotten", d.name, now - d.last_seen)
+        return [d.name for d in old]
+
+    def drain(self, timeout: float) -> bool:
+        """Wait up to `timeout` s until every fix submitted has its outcome; True if so."""
+        deadline = time.monotonic() + timeout
+        while True:
+            s = self.stats
+            if s.answered + s.refused + s.lost >= s.fixes:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+    def names(self) -> list[str]:
+        """The devices held now."""
+        with self._lock:
+            return list(self._devices)
+
+    def participant(self, name: str) -> Participant | None:
+        """Device `name`'s participant, once its session is open (for tests and tools)."""
+        with self._lock:
+            device = self._devices.get(name)
+        if device is None or not device.session.done() or device.session.exception():
+            return None
+        return device.participant
+
+    def close(self) -> None:
+        """Close every device's participant."""
+        with self._lock:
+            devices, self._devices = list(self._devices.values()), {}
+            self.stats.devices = 0
+        self._executor.shutdown(wait=True, cancel_futures=True)
+        for d in devices:
+            self._close(d)
+
+    def __enter__(self) -> DevicePool:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # --- the opening threads and the participants' threads ------------------------------
+
+    def _open(self, device: _Device) -> None:
+        c = self.config
+        broker = c.cluster
+        if c.device_accounts:
+            broker = broker.model_copy(update={"username": device.name})
+        try:
+            participant = Participant.create(
+                broker,
+                client_id=device.name,
+                service_keys=c.service_keys,
+                anchors=c.anchors,
+                core_key=c.core_key,
+            )
+            device.participant = participant
+            participant.start(timeout=c.open_timeout)
+            self._wait_for_service(participant)
+            session = participant.open(self.service, timeout=c.open_timeout)
+        except Exception as exc:  # any failure fails this device only
+            if device.participant is not None:
+                device.participant.stop()
+            with contextlib.suppress(InvalidStateError):
+                device.session.set_exception(exc)
+            return
+        try:
+            device.session.set_result(session)
+        except InvalidStateError:  # forgotten (cancelled) while it opened
+            participant.stop()
+            return
+        self.stats.opened += 1
+
+    def _wait_for_service(self, participant: Participant) -> None:
+        deadline = time.monotonic() + self.config.open_timeout
+        while time.monotonic() < deadline:
+            if any(s.name == self.service for s in participant.services(timeout=0.5)):
+                return
+            time.sleep(0.1)
+        raise TimeoutError(
+            f"the {self.service!r} service did not appear in the cluster's service list "
+            f"within {self.config.open_timeout:g} s; is `laas worker` running and its cores "
+            "connected?"
+        )
+
+    def _send(
+        self, device: _Device, opened: Future[Session], payload: dict[str, Any], on: OnAnswer
+    ) -> None:
+        error = CancelledError() if opened.cancelled() else opened.exception()
+        if error is not None:
+            self.stats.lost += 1
+            self.limiter.warn(
+                f"{device.name}|open",
+                "device %s: no session with %r, its fixes are dropped: %s",
+                device.name,
+                self.service,
+                error,
+            )
+            return
+        reply = opened.result().submit(payload)
+        reply.add_done_callback(lambda r: self._reply(device, r, on))
+
+    def _reply(self, device: _Device, reply: Future[dict[str, Any]], on: OnAnswer) -> None:
+        error = reply.exception()
+        if error is not None:
+            self.stats.lost += 1
+            self.limiter.warn(
+                f"{device.name}|lost", "device %s: a fix got no answer: %s", device.name, error
+            )
+            return
+        try:
+            answer = read_reply(reply.result())
+        except ValidationError:
+            self.stats.lost += 1
+            self.limiter.warn(
+                f"{device.name}|reply", "device %s: the service's reply is not one", device.name
+            )
+            return
+        if isinstance(answer, ErrorReply):
+            self.stats.refused += 1
+            self.limiter.warn(
+                f"{device.name}|refused",
+                "device %s: fix refused (%s): %s",
+                device.name,
+                answer.error.kind,
+                answer.error.message,
+            )
+        else:
+            self.stats.answered += 1
+        try:
+            on(answer)
+        except Exception:
+            log.exception("device %s: the bridge failed to pass an answer on", device.name)
+
+    def _close(self, device: _Device) -> None:
+        if not device.session.done():
+            device.session.cancel()
+        if device.participant is not None:
+            device.participant.stop()

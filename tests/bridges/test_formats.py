@@ -1,0 +1,311 @@
+"""The bridges' decoders on the formats' own documented examples, and fuzzed.
+
+Sources of the payloads:
+- OwnTracks location: the OwnTracks Recorder's README ("Last position of a particular
+  user", https://github.com/owntracks/recorder); the card and the encryption secret
+  "mysecreTpass01": the OwnTracks booklet (features/card.md, features/encrypt.md).
+- gpsd TPV: the protocol 3.4 example in gpsd_json(5) / Net::GPSD3 (Debian man page).
+- NMEA RMC and GGA: the examples of gpsd's "NMEA Revealed" (https://gpsd.io/NMEA.html).
+- CAM: the documented values ("examples", units) of its-client's cam_schema_2-1-0.json.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from laas.bridges.cam import answer_cam, cam_fix, etsi_lane_position, read_cam
+from laas.bridges.gpsd import parse_address, tpv_fix
+from laas.bridges.nmea import KNOT, nmea_fixes, nmea_sentences
+from laas.bridges.owntracks import (
+    LAAS_FIELD,
+    answer_location,
+    decrypt,
+    encrypt,
+    read_location,
+    secret_key,
+    to_measurement,
+)
+from laas.bridges.pool import LogLimiter, Malformed, device_name
+from laas.errors import ConfigError
+from laas.models import CorrectedPosition, GpsMeasurement
+
+from ..helpers import Clock, small_map
+
+RECORDER_EXAMPLE = {
+    "tst": 1440405601,
+    "acc": 10,
+    "_type": "location",
+    "alt": 262,
+    "lon": 13.60279820860699,
+    "vac": 6,
+    "vel": 18,
+    "lat": 51.06263391678321,
+    "cog": 82,
+    "tid": "NE",
+    "batt": 99,
+}
+BOOKLET_CARD = {"_type": "card", "name": "Jane Jolie", "face": "iV1CFEVkMhmCIKBUKh3"}
+BOOKLET_SECRET = "mysecreTpass01"
+GPSD_TPV = {
+    "class": "TPV",
+    "tag": "0x0106",
+    "device": "/dev/cuaU0",
+    "time": "2011-03-20T06:51:59.12Z",
+    "ept": 0.005,
+    "lat": 37.371427205,
+    "lon": -122.015179890,
+    "alt": 25.789,
+    "epx": 1.926,
+    "epy": 1.808,
+    "epv": 6.497,
+    "track": 0.0000,
+    "speed": 0.000,
+    "climb": 0.000,
+    "eps": 3.85,
+    "mode": 3,
+}
+NMEA_RMC = "$GPRMC,123519,A,4807.038,N,01131.000,E,022.4,084.4,230394,003.1,W*6A"
+NMEA_GGA = "$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47"
+
+
+def cam(**hf: int) -> dict[str, object]:
+    return {
+        "message_type": "cam",
+        "source_uuid": "42",
+        "timestamp": 1574778515424,
+        "version": "2.1.0-dev",
+        "message": {
+            "protocol_version": 1,
+            "station_id": 42,
+            "generation_delta_time": 1245,
+            "basic_container": {
+                "station_type": 5,
+                "reference_position": {
+                    "latitude": 488417860,
+                    "longitude": 23678940,
+                    "altitude": {"value": 14000, "confidence": 15},
+                    "position_confidence_ellipse": {
+                        "semi_major_confidence": 500,
+                        "semi_minor_confidence": 300,
+                        "semi_major_orientation": 900,
+                    },
+                },
+            },
+            "high_frequency_container": {"heading": 900, "speed": 1389, **hf},
+        },
+    }
+
+
+# --- OwnTracks ----------------------------------------------------------------------
+
+
+def test_an_owntracks_location_maps_to_a_fix() -> None:
+    location = read_location(json.dumps(RECORDER_EXAMPLE).encode())
+    assert location is not None
+    fix = to_measurement(location)
+    assert fix.timestamp == 1440405601000  # s -> ms
+    assert (fix.latitude, fix.longitude, fix.altitude) == (
+        51.06263391678321,
+        13.60279820860699,
+        262,
+    )
+    assert fix.speed == pytest.approx(5.0)  # 18 km/h
+    assert fix.heading == 82 and fix.accuracy == 10
+
+
+def test_fields_the_app_leaves_out_when_zero_default_sanely() -> None:
+    bare = {k: RECORDER_EXAMPLE[k] for k in ("_type", "tst", "lat", "lon")}
+    location = read_location(json.dumps(bare).encode())
+    assert location is not None
+    fix = to_measurement(location)
+    assert (fix.speed, fix.heading, fix.altitude, fix.accuracy) == (0.0, 0.0, 0.0, None)
+
+
+def test_other_owntracks_types_are_not_fixes_and_bad_ones_say_why() -> None:
+    assert read_location(json.dumps(BOOKLET_CARD).encode()) is None
+    with pytest.raises(Malformed, match="lat"):
+        read_location(json.dumps({**RECORDER_EXAMPLE, "lat": 91}).encode())
+    with pytest.raises(Malformed, match="not JSON"):
+        read_location(b"{")
+    try:
+        read_location(json.dumps({**RECORDER_EXAMPLE, "lat": 91.234567}).encode())
+    except Malformed as exc:
+        assert "91.23" not in str(exc)  # no position in a problem report
+
+
+def test_owntracks_encryption_round_trips_with_the_apps_key() -> None:
+    key = secret_key(BOOKLET_SECRET)
+    assert key == b"mysecreTpass01" + b"\0" * 18  # padded with zeros to 32
+    sealed = encrypt(json.dumps(RECORDER_EXAMPLE).encode(), key)
+    envelope = json.loads(sealed)
+    assert envelope["_type"] == "encrypted" and "51.06" not in sealed.decode()
+    location = read_location(sealed, key)
+    assert location is not None and location.tst == 1440405601
+    with pytest.raises(Malformed, match="secret"):
+        read_location(sealed, secret_key("another"))
+    with pytest.raises(Malformed, match="no secret"):
+        read_location(sealed, None)
+    with pytest.raises(Malformed):
+        decrypt("not base64!", key)
+    with pytest.raises(ConfigError, match="32"):
+        secret_key("x" * 33)
+
+
+def test_an_answer_becomes_an_owntracks_location_with_the_lane() -> None:
+    answer = CorrectedPosition(
+        timestamp=1440405601000,
+        latitude=51.0626,
+        longitude=13.6028,
+        segment="s1",
+        lane=2,
+        lane_type="driving",
+        probability=0.9,
+        accuracy=1.2,
+        accuracy_cross=0.3,
+        accuracy_along=1.16,
+    )
+    out = answer_location(answer)
+    assert out["_type"] == "location" and out["tst"] == 1440405601 and out["acc"] == 2
+    assert out[LAAS_FIELD]["lane"] == 2 and out[LAAS_FIELD]["lane_type"] == "driving"
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.binary(max_size=300)
+    | st.dictionaries(st.text(max_size=5), st.integers()).map(
+        lambda d: json.dumps({"_type": "location", **d}).encode()
+    )
+)
+def test_the_owntracks_decoder_never_fails_otherwise(payload: bytes) -> None:
+    with contextlib.suppress(Malformed):
+        read_location(payload, secret_key(BOOKLET_SECRET))
+
+
+def test_device_names_are_one_topic_level_and_never_collide() -> None:
+    assert device_name("ot.", "alice", "phone") == "ot.alice.phone"
+    for bad in ("a.b", "a b", "", "é"):
+        with pytest.raises(ValueError, match="cannot name a device"):
+            device_name("ot.", bad, "phone")
+
+
+def test_problems_are_logged_once_per_key_per_interval(caplog: pytest.LogCaptureFixture) -> None:
+    clock = Clock()
+    limiter = LogLimiter(60.0, clock)
+    with caplog.at_level(logging.WARNING, logger="laas.bridges.pool"):
+        assert [limiter.warn("a", "device a: bad") for _ in range(5)] == [True] + [False] * 4
+        assert limiter.warn("b", "device b: bad")  # another device is not held back
+        clock.now += 60.0
+        assert limiter.warn("a", "device a: bad")
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [
+        "device a: bad",
+        "device b: bad",
+        "device a: bad (4 more like it since the last report)",
+    ]
+
+
+# --- gpsd and NMEA ------------------------------------------------------------------
+
+
+def test_a_gpsd_tpv_report_maps_to_a_fix() -> None:
+    fix = tpv_fix(GPSD_TPV)
+    assert fix is not None
+    assert fix.timestamp == 1300603919120
+    assert (fix.latitude, fix.longitude, fix.altitude) == (37.371427205, -122.015179890, 25.789)
+    # epx, epy are 95 % per axis: sigma = ep / 1.96
+    assert fix.accuracy == pytest.approx(math.hypot(1.926, 1.808) / 1.96)
+    assert tpv_fix({**GPSD_TPV, "mode": 1}) is None  # no fix
+    with pytest.raises(Malformed, match="lat"):
+        tpv_fix({**GPSD_TPV, "lat": "north"})
+    assert parse_address("localhost:2947") == ("localhost", 2947)
+    with pytest.raises(ValueError, match="HOST:PORT"):
+        parse_address("localhost:gps")
+
+
+def test_nmea_rmc_and_gga_make_a_fix() -> None:
+    alone = list(nmea_fixes([NMEA_RMC]))
+    assert len(alone) == 1 and isinstance(alone[0], GpsMeasurement)
+    fix = alone[0]
+    assert fix.latitude == pytest.approx(48 + 7.038 / 60)
+    assert fix.longitude == pytest.approx(11 + 31.0 / 60)
+    assert fix.speed == pytest.approx(22.4 * KNOT) and fix.heading == 84.4
+    assert fix.timestamp == 764426119000  # 1994-03-23 12:35:19 UTC
+    (joined,) = nmea_fixes([NMEA_GGA, NMEA_RMC])
+    assert isinstance(joined, GpsMeasurement) and joined.altitude == 545.4
+    broken = list(nmea_fixes([NMEA_RMC[:-2] + "00", "$GPRMC,123519,V,,,,,,,230394,,*00", "junk"]))
+    assert len(broken) == 2 and all(isinstance(b, Malformed) for b in broken)
+
+
+def test_nmea_written_for_a_fix_reads_back() -> None:
+    fix = GpsMeasurement(
+        timestamp=1_800_000_000_120,
+        latitude=53.55878,
+        longitude=9.97607,
+        altitude=10.0,
+        heading=30.8,
+        speed=5.1,
+        accuracy=2.0,
+    )
+    (back,) = nmea_fixes(nmea_sentences(fix))
+    assert isinstance(back, GpsMeasurement)
+    assert back.timestamp == fix.timestamp
+    assert back.latitude == pytest.approx(fix.latitude, abs=1e-7)
+    assert back.longitude == pytest.approx(fix.longitude, abs=1e-7)
+    assert back.speed == pytest.approx(fix.speed, abs=0.01)
+    assert back.accuracy == pytest.approx(2.0, abs=0.02)
+
+
+# --- CAM ----------------------------------------------------------------------------
+
+
+def test_a_cam_maps_to_a_fix_in_its_units() -> None:
+    parsed, _raw = read_cam(json.dumps(cam()).encode())
+    fix = cam_fix(parsed)
+    assert fix is not None
+    assert fix.latitude == pytest.approx(48.841786) and fix.longitude == pytest.approx(2.367894)
+    assert fix.altitude == 140.0 and fix.heading == 90.0 and fix.speed == pytest.approx(13.89)
+    assert fix.accuracy == pytest.approx(math.hypot(5.0, 3.0) / 2.4477)
+    unavailable = cam()
+    unavailable["message"]["basic_container"]["reference_position"]["latitude"] = 900000001  # type: ignore[index]
+    assert cam_fix(read_cam(json.dumps(unavailable).encode())[0]) is None
+    with pytest.raises(Malformed, match="message_type"):
+        read_cam(json.dumps({**cam(), "message_type": "denm"}).encode())
+
+
+def test_etsi_lane_positions_count_driving_lanes_from_the_middle() -> None:
+    hdmap = small_map()  # sidewalk (both), driving backward, driving forward, bicycle
+    seg = sorted(hdmap.segments)[0]
+
+    def answer(lane: int | None, segment: str | None = seg) -> CorrectedPosition:
+        lane_type = None if lane is None else hdmap.segments[seg].lanes[lane].type
+        return CorrectedPosition(
+            timestamp=0,
+            latitude=0.0,
+            longitude=0.0,
+            segment=segment,
+            lane=lane,
+            lane_type=lane_type,
+            probability=1.0,
+            accuracy=1.0,
+            accuracy_cross=0.5,
+            accuracy_along=0.8,
+        )
+
+    assert etsi_lane_position(hdmap, answer(2)) == 1  # the forward driving lane
+    assert etsi_lane_position(hdmap, answer(1)) == 1  # the backward one, its own side
+    assert etsi_lane_position(hdmap, answer(0)) == -1  # sidewalk: off the road
+    assert etsi_lane_position(hdmap, answer(3)) is None  # bicycle lane: no ETSI number
+    assert etsi_lane_position(hdmap, answer(None, None)) == -1
+    out = answer_cam(cam(lane_position=7), answer(3), None)
+    assert "lane_position" not in out["message"]["high_frequency_container"]
+    out = answer_cam(cam(), answer(2), 1)
+    assert out["message"]["high_frequency_container"]["lane_position"] == 1
+    ellipse = out["message"]["basic_container"]["reference_position"]["position_confidence_ellipse"]
+    assert ellipse["semi_major_confidence"] == round(1.0 / math.sqrt(2) * 2.4477 * 100)

@@ -46,6 +46,7 @@ from laas.config import EngineConfig, Settings
 from laas.engine.engine import Engine
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, problems
+from laas.regions import Region
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 
 __all__ = [
@@ -63,14 +64,17 @@ SERVICE_NAME = "laas"
 log = logging.getLogger(__name__)
 
 
-def service_spec() -> ServiceSpec:
-    """What the worker announces: name, version and the two wire schemas."""
+def service_spec(region: Region | None = None) -> ServiceSpec:
+    """What the worker announces: name, version and the two wire schemas; a regional
+    worker, its own name in the `laas` family and its coverage (`laas.regions`)."""
     return ServiceSpec(
-        name=SERVICE_NAME,
+        name=SERVICE_NAME if region is None else region.name,
         version=version("laas"),
         description="Lane-level cooperative positioning: send GNSS fixes, get lane positions back.",
         input_schema=GpsMeasurement.model_json_schema(),
         output_schema=CorrectedPosition.model_json_schema(),
+        family=None if region is None else SERVICE_NAME,
+        coverage=None if region is None else region.coverage,
     )
 
 
@@ -324,9 +328,12 @@ def start_worker(
     hdmap: HdMap,
     config: EngineConfig | None = None,
     worker: WorkerConfig | None = None,
+    *,
+    region: Region | None = None,
     **provider_settings: Any,
 ) -> tuple[Provider, LaasService]:
-    """Connect to a service-cluster broker, announce `laas` and serve until stopped.
+    """Connect to a service-cluster broker, announce `laas` (or, for a region, its
+    worker of the `laas` family) and serve until stopped.
 
     ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``, ``max_age``,
     ``data_qos``, ...).
@@ -334,11 +341,16 @@ def start_worker(
     service = LaasService(hdmap, config, worker)
     provider = Provider.create(
         cluster,
-        service_spec(),
+        service_spec(region),
         service.handle,
         batch_handler=service.handle_many,
         **provider_settings,
     )
     provider.start()
-    log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)
+    log.info(
+        "%s serving map %s on %s",
+        provider.name,
+        hdmap.source,
+        BrokerSettings.of(cluster).url,
+    )
     return provider, service

@@ -30,10 +30,12 @@ from ldm.errors import (
 from ldm.identity import SigningKey
 from ldm.messages import ServiceDescription, ServiceSpec, SessionGrant
 from ldm.participant import Participant, Session
-from ldm.provider import Handler, Provider, ProviderStats, Request
+from ldm.provider import BatchHandler, Handler, Provider, ProviderStats, Request
+from ldm.routing import RoutedSession
 from ldm.trust import Trust
 
 __all__ = [
+    "BatchHandler",
     "BrokerProcess",
     "BrokerSettings",
     "ConfigError",
@@ -54,6 +56,7 @@ __all__ = [
     "Request",
     "RequestRejected",
     "RequestTimeout",
+    "RoutedSession",
     "ServiceDescription",
     "ServiceNotFound",
     "ServiceSpec",

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ldm.identity import canonical
 from ldm.topics import NAME_PATTERN, TOKEN_PATTERN
@@ -43,13 +43,32 @@ class _Wire(BaseModel):
 
 
 class ServiceSpec(_Wire):
-    """What a provider offers: name, version, description and JSON schemas."""
+    """What a provider offers: name, version, description and JSON schemas.
+
+    Several providers may share one service among them by area: each is a service of
+    its own name in the same ``family``, and announces its ``coverage``, a polygon of
+    (longitude, latitude) vertices in degrees. A participant routes each input to the
+    provider whose coverage holds its position (`ldm.routing.RoutedSession`).
+    """
 
     name: str = Field(pattern=_NAME)
     version: str = "1"
     description: str = ""
     input_schema: dict[str, Any] = Field(default_factory=dict)
     output_schema: dict[str, Any] = Field(default_factory=dict)
+    family: str | None = Field(default=None, pattern=_NAME)
+    coverage: list[tuple[float, float]] | None = Field(default=None, min_length=3, max_length=4096)
+
+    @field_validator("coverage")
+    @classmethod
+    def _lon_lat(cls, ring: list[tuple[float, float]] | None) -> list[tuple[float, float]] | None:
+        if ring is not None:
+            for lon, lat in ring:
+                if not (-180.0 <= lon <= 180.0 and -90.0 <= lat <= 90.0):
+                    raise ValueError(
+                        f"coverage vertex ({lon}, {lat}) is not a (longitude, latitude) in degrees"
+                    )
+        return ring
 
 
 class ServiceDescription(ServiceSpec):

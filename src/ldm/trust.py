@@ -4,7 +4,8 @@ A service description is trusted when
 
 1. it carries a valid signature by its ``identity`` key, and
 2. that identity is pinned for the service's name (``service_keys``), or a trust
-   anchor (``anchors``) endorsed it for that name.
+   anchor (``anchors``) endorsed it for that name; for a regional provider, the name of
+   its family will do as well.
 
 A `Trust` with neither pins nor anchors is *open*: it takes any description, signed or
 not, which is how a participant behaved before identities existed (it then trusts the
@@ -43,12 +44,17 @@ class Trust:
             return None
         if desc.identity is None or not verify(desc.identity, desc.signed_text(), desc.signature):
             return f"service {desc.name!r} is not signed by its identity key"
-        pinned = self.service_keys.get(desc.name)
-        if pinned is not None and pinned == desc.identity:
-            return None
-        text = endorsement_text(desc.name, desc.identity)
-        if any(verify(anchor, text, desc.endorsement) for anchor in self.anchors):
-            return None
+        # A regional provider may be pinned or endorsed under its family's name: the
+        # signature covers the family and the coverage it announces.
+        for name in (desc.name, desc.family):
+            if name is None:
+                continue
+            pinned = self.service_keys.get(name)
+            if pinned is not None and pinned == desc.identity:
+                return None
+            text = endorsement_text(name, desc.identity)
+            if any(verify(anchor, text, desc.endorsement) for anchor in self.anchors):
+                return None
         return (
             f"service {desc.name!r} is signed by identity {desc.identity}, which is neither "
             "pinned for it nor endorsed by a trusted anchor"

@@ -25,6 +25,7 @@ from typing import Any, Literal
 from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
+from laas.regions import Region, split
 from laas.service import LaasService, start_worker
 from ldm import Core, Provider
 from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
@@ -57,6 +58,7 @@ class LocalDeployment:
         data_qos: int = 0,
         worker_process: bool = False,
         hops: Hops | None = None,
+        regions: int = 1,
     ) -> None:
         if worker_process and not Path(hdmap.source).is_file():
             raise ConfigError(
@@ -72,13 +74,16 @@ class LocalDeployment:
         self.worker_process = worker_process
         self.brokers: dict[str, RunningBroker] = {}
         self.cores: dict[str, Core] = {}
-        self.provider: Provider | None = None
-        self.service: LaasService | None = None  # the worker's, when it runs in this process
+        self.regions = split(hdmap, regions) if regions > 1 else [None]
+        """The workers' regions (`laas.regions`): one worker each; [None], one for all."""
+        self.workers: list[tuple[Provider, LaasService]] = []  # in this process
+        self.provider: Provider | None = None  # the first worker's, in this process
+        self.service: LaasService | None = None
         self.identity = SigningKey.generate()
         """The laas worker's identity, pinned by the cores and by `trust`'s participants."""
         self.hops = hops
         """Where the cores and the worker note each input's passage (`ldm.hops`)."""
-        self._worker: _WorkerProcess | None = None
+        self._processes: list[_WorkerProcess] = []
         self._worker_answered = -1
         self.worker_cpu = math.nan
         """CPU seconds of the worker process while it served, known once it has stopped."""
@@ -99,8 +104,8 @@ class LocalDeployment:
     def worker_answered(self) -> int:
         """Fixes the worker answered; of a worker process, known once it has stopped (-1
         until then)."""
-        if self.service is not None:
-            return self.service.stats.answered
+        if self.workers:
+            return sum(service.stats.answered for _, service in self.workers)
         return self._worker_answered
 
     def start(self) -> LocalDeployment:
@@ -120,29 +125,45 @@ class LocalDeployment:
                 self.cores[name].hops = self.hops
                 self.cores[name].start()
             url = self.brokers["service"].url
-            if self.worker_process:
-                self._worker = _WorkerProcess(
-                    url, self.hdmap, self.config, self.identity, self.hops is not None
-                )
-            else:
-                self.provider, self.service = start_worker(
-                    url, self.hdmap, self.config, identity=self.identity
-                )
-                self.provider.hops = self.hops
+            for region in self.regions:
+                if self.worker_process:
+                    self._processes.append(
+                        _WorkerProcess(
+                            url,
+                            self.hdmap,
+                            self.config,
+                            self.identity,
+                            self.hops is not None,
+                            region,
+                        )
+                    )
+                else:
+                    provider, service = start_worker(
+                        url, self.hdmap, self.config, identity=self.identity, region=region
+                    )
+                    provider.hops = self.hops
+                    self.workers.append((provider, service))
+            if self.workers:
+                self.provider, self.service = self.workers[0]
         except BaseException:
             self.stop()
             raise
         return self
 
     def stop(self) -> None:
-        if self.provider is not None:
-            self.provider.stop()
-            self.provider = None
-        if self._worker is not None:
-            self._worker_answered, self.worker_cpu, marks = self._worker.stop()
+        for provider, _ in self.workers:
+            provider.stop()
+        self.workers.clear()
+        self.provider = None
+        if self._processes:
+            self._worker_answered, self.worker_cpu = 0, 0.0
+        for process in self._processes:
+            answered, cpu, marks = process.stop()
+            self._worker_answered += answered
+            self.worker_cpu += cpu
             if self.hops is not None and marks:
                 self.hops.merge(marks)
-            self._worker = None
+        self._processes.clear()
         for core in self.cores.values():
             core.stop()
         self.cores.clear()
@@ -172,6 +193,7 @@ class _WorkerProcess:
         config: EngineConfig | None,
         identity: SigningKey,
         hops: bool = False,
+        region: Region | None = None,
     ) -> None:
         ctx = mp.get_context("spawn")
         self._ready, self._stop = ctx.Event(), ctx.Event()
@@ -179,7 +201,17 @@ class _WorkerProcess:
         pem = identity.to_pem()  # through the process pipe, never a file or a log
         self._process = ctx.Process(
             target=_serve,
-            args=(url, hdmap.source, config, pem, self._ready, self._stop, self._results, hops),
+            args=(
+                url,
+                hdmap.source,
+                config,
+                pem,
+                self._ready,
+                self._stop,
+                self._results,
+                hops,
+                region,
+            ),
             name="laas-worker",
         )
         self._process.start()
@@ -218,10 +250,13 @@ def _serve(
     stop: Any,
     results: Any,
     hops: bool,
+    region: Region | None,
 ) -> None:
     """The worker process: serve until `stop` is set, then leave what it did."""
     identity = SigningKey.from_pem(pem)
-    provider, service = start_worker(url, HdMap.load(map_path), config, identity=identity)
+    provider, service = start_worker(
+        url, HdMap.load(map_path), config, identity=identity, region=region
+    )
     if hops:
         provider.hops = Hops()
     cpu0 = time.process_time()

@@ -27,7 +27,7 @@ from pydantic import ValidationError
 from laas.models import CorrectedPosition, ErrorReply, read_reply
 from laas.service import SERVICE_NAME
 from laas.sim.scenario import Trace
-from ldm import BrokerSettings, Participant, Session
+from ldm import BrokerSettings, Participant, RoutedSession, Session
 
 __all__ = [
     "LiveRun",
@@ -97,11 +97,12 @@ def wait_for_service(participant: Participant, timeout: float) -> None:
     """Wait until the cluster's service list names the laas service; TimeoutError if not."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if any(s.name == SERVICE_NAME for s in participant.services(timeout=0.5)):
+        services = participant.services(timeout=0.5)
+        if any(SERVICE_NAME in (s.name, s.family) for s in services):
             return
         time.sleep(0.1)
     raise TimeoutError(
-        f"the {SERVICE_NAME!r} service did not appear in the cluster's service list within "
+        f"no {SERVICE_NAME!r} service appeared in the cluster's service list within "
         f"{timeout:.0f} s; is `laas worker` running and its cores connected?"
     )
 
@@ -114,8 +115,9 @@ def accounts(trace: Trace, prefix: str) -> dict[str, str]:
 @contextmanager
 def open_sessions(
     logins: Mapping[str, Login], discovery_timeout: float, **participant_settings: Any
-) -> Iterator[dict[str, Session]]:
-    """Start one participant per road user, wait for the service, open a session each;
+) -> Iterator[dict[str, RoutedSession]]:
+    """Start one participant per road user, wait for the service, route each (a session
+    with the worker whose region holds the user's fix, opened on first use);
     the participants stop when the block ends."""
     participants = {
         u: Participant.create(settings, client_id=client_id, **participant_settings)
@@ -125,14 +127,14 @@ def open_sessions(
         for p in participants.values():
             p.start()
         wait_for_service(next(iter(participants.values())), discovery_timeout)
-        yield {u: p.open(SERVICE_NAME) for u, p in participants.items()}
+        yield {u: RoutedSession(p, SERVICE_NAME) for u, p in participants.items()}
     finally:
         for p in participants.values():
             p.stop()
 
 
 def submit_on_time(
-    sessions: Mapping[str, Session],
+    sessions: Mapping[str, Session] | Mapping[str, RoutedSession],
     sends: Sequence[tuple[str, dict[str, Any]]],
     *,
     t0_ms: int,
@@ -156,7 +158,12 @@ def submit_on_time(
             time.sleep(delay)
         payload = dict(measurement, timestamp=timestamp + shift)
         sent = time.perf_counter()
-        request = Request(i, sent, sessions[user].submit(payload))
+        session = sessions[user]
+        if isinstance(session, RoutedSession):  # to the worker of the fix's region
+            future = session.submit(payload, (payload["longitude"], payload["latitude"]))
+        else:
+            future = session.submit(payload)
+        request = Request(i, sent, future)
         request.future.add_done_callback(request.stamp)
         requests.append(request)
         if on_submit is not None:

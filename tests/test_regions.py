@@ -1,0 +1,80 @@
+"""Regional workers: one map split among workers, each fix routed by the participant."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from laas.config import EngineConfig
+from laas.errors import ConfigError
+from laas.map.hdmap import HdMap
+from laas.regions import parse_region, split
+from laas.run.deployment import LocalDeployment
+from laas.run.participants import run_participants
+from laas.service import service_spec
+from laas.sim.scenario import hamburg_scenario, simulate
+from laas.sim.score import answer_trace, score
+from ldm.messages import ServiceDescription
+from ldm.routing import covers, depth
+
+CONFIG = EngineConfig(sigma_pos=1.0, sigma_vel=0.25, sigma_heading=0.05)
+
+
+def _described(hamburg_map: HdMap, count: int) -> list[ServiceDescription]:
+    return [
+        ServiceDescription(**service_spec(r).model_dump(), public_key="A" * 43 + "=")
+        for r in split(hamburg_map, count, overlap=50.0)
+    ]
+
+
+def test_the_regions_cover_the_map_once_and_overlap_at_their_borders(hamburg_map: HdMap) -> None:
+    """Every point of the map lies in one region's coverage, or two within the overlap of
+    a border; names and family are those of the laas family."""
+    regions = _described(hamburg_map, 3)
+    assert [d.name for d in regions] == ["laas-1of3", "laas-2of3", "laas-3of3"]
+    assert {d.family for d in regions} == {"laas"}
+    x0, y0, x1, y1 = hamburg_map.bounds
+    rng = np.random.default_rng(1)
+    width = (x1 - x0) / 3 if x1 - x0 >= y1 - y0 else (y1 - y0) / 3
+    for x, y in zip(rng.uniform(x0, x1, 300), rng.uniform(y0, y1, 300), strict=True):
+        where = hamburg_map.projection.to_wgs84(float(x), float(y))
+        holders = [d.name for d in regions if covers(d, where)]
+        assert 1 <= len(holders) <= 2, (x, y, holders)
+        along = x - x0 if x1 - x0 >= y1 - y0 else y - y0
+        near_border = min(abs(along - width), abs(along - 2 * width)) < 50.0
+        assert len(holders) == 1 or near_border
+    # the deepest coverage of a point is the region it lies in
+    centre = hamburg_map.projection.to_wgs84((x0 + x1) / 2, (y0 + y1) / 2)
+    assert max(regions, key=lambda d: depth(d, centre)).name == "laas-2of3"
+    with pytest.raises(ConfigError, match="K/N"):
+        parse_region("4/3")
+    assert parse_region("2/3") == (1, 3)
+
+
+def test_two_workers_split_hamburg_and_answer_users_across_the_border(hamburg_map: HdMap) -> None:
+    """The Hamburg scenario through two regional workers: every fix is answered, each
+    worker answers its share, the users who cross the border keep being answered, and
+    lane accuracy is within 0.02 of one worker's (the offline replay, which a single
+    live worker equals: tests/test_live.py)."""
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    offline = score(hamburg_map, trace, answer_trace(hamburg_map, trace, CONFIG))
+    with LocalDeployment(hamburg_map, CONFIG, brokers="embedded", regions=2) as deployment:
+        assert [p.name for p, _ in deployment.workers] == ["laas-1of2", "laas-2of2"]
+        live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
+        shares = [service.stats.answered for _, service in deployment.workers]
+    assert live.errors == []
+    assert live.answered == len(trace.fixes) == sum(shares)
+    assert min(shares) > 0, shares
+    # some road user's fixes lie on both sides: it was handed over and answered all along
+    regions = split(hamburg_map, 2)
+    along_x = regions[0].box[2] < regions[1].box[2]  # cut across x (else across y)
+    k = 0 if along_x else 1
+    border = (regions[0].box[2 + k] + regions[1].box[k]) / 2
+    sides: dict[str, set[bool]] = {}
+    for fix in trace.fixes:
+        x, y = hamburg_map.projection.to_utm(fix.measurement.longitude, fix.measurement.latitude)
+        sides.setdefault(fix.user, set()).add((x if along_x else y) > border)
+    assert any(len(s) == 2 for s in sides.values()), "no user crosses the border"
+    online = score(hamburg_map, trace, live.answers)
+    assert abs(online.accuracy - offline.accuracy) <= 0.02, (online.accuracy, offline.accuracy)

@@ -14,8 +14,12 @@ from laas.run.participants import run_participants
 from laas.service import service_spec
 from laas.sim.scenario import hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
+from ldm.brokers import BrokerKind
 from ldm.messages import ServiceDescription
+from ldm.pytest_plugin import broker_kind
 from ldm.routing import covers, depth
+
+__all__ = ["broker_kind"]
 
 CONFIG = EngineConfig(sigma_pos=1.0, sigma_vel=0.25, sigma_heading=0.05)
 
@@ -78,3 +82,70 @@ def test_two_workers_split_hamburg_and_answer_users_across_the_border(hamburg_ma
     assert any(len(s) == 2 for s in sides.values()), "no user crosses the border"
     online = score(hamburg_map, trace, live.answers)
     assert abs(online.accuracy - offline.accuracy) <= 0.02, (online.accuracy, offline.accuracy)
+
+
+def test_a_standby_takes_over_when_the_worker_dies(
+    hamburg_map: HdMap, broker_kind: BrokerKind
+) -> None:
+    """A standby waits while the worker serves; the worker dies without a goodbye (its
+    last will withdraws it), the standby starts under the same identity, and a road
+    user sending a fix every 0.2 s is answered again within 5 s, with no wrong answer."""
+    import threading
+    import time
+
+    from laas.service import start_worker
+    from ldm import Participant, RoutedSession
+    from ldm.standby import wait_until_vacant
+
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    car = [f.measurement for f in trace.fixes if f.user == trace.fixes[0].user]
+    with LocalDeployment(hamburg_map, CONFIG, brokers=broker_kind) as deployment:
+        url = deployment.brokers["service"].url
+        took_over: list[object] = []
+
+        def standby() -> None:
+            if wait_until_vacant(url, "laas", quiet=60.0, stop=stopping):
+                took_over.append(
+                    start_worker(url, hamburg_map, CONFIG, identity=deployment.identity)
+                )
+
+        stopping = threading.Event()
+        thread = threading.Thread(target=standby, daemon=True)
+        thread.start()
+        participant = Participant.create(deployment.user_url, **deployment.trust).start()
+        routed = RoutedSession(participant, "laas")
+        shift = int(time.time() * 1000) - car[0].timestamp
+        answered: list[tuple[float, int]] = []  # (wall clock, fix index)
+        killed_at = None
+        try:
+            for i, m in enumerate(car[:80]):
+                fix = m.model_copy(update={"timestamp": m.timestamp + shift})
+                try:
+                    reply = routed.request(
+                        fix.model_dump(exclude_none=True), (m.longitude, m.latitude), 1.0
+                    )
+                except Exception:
+                    reply = {}
+                if "segment" in reply:
+                    assert reply["timestamp"] == fix.timestamp
+                    answered.append((time.monotonic(), i))
+                if i == 10:
+                    assert not took_over, "the standby must wait while the worker serves"
+                    provider, _ = deployment.workers.pop()
+                    provider.kill()  # no goodbye: the broker publishes its last will
+                    killed_at = time.monotonic()
+                time.sleep(0.2)
+                if took_over and len([a for a in answered if a[1] > 10]) >= 10:
+                    break
+        finally:
+            stopping.set()
+            participant.stop()
+            for provider, _ in took_over:  # type: ignore[misc]
+                provider.stop()
+    assert killed_at is not None and took_over, "the standby never took over"
+    after = [t for t, i in answered if i > 10]
+    assert after, "no answer after the worker died"
+    gap = after[0] - killed_at
+    assert gap < 5.0, f"answers resumed {gap:.1f} s after the worker died"
+    print(f"\nstandby: answers resumed {gap:.2f} s after the worker died")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from laas.run.participants import run_participants
 from laas.service import service_spec
 from laas.sim.scenario import hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
+from ldm import BrokerSettings
 from ldm.brokers import BrokerKind
 from ldm.messages import ServiceDescription
 from ldm.pytest_plugin import broker_kind
@@ -149,3 +152,72 @@ def test_a_standby_takes_over_when_the_worker_dies(
     gap = after[0] - killed_at
     assert gap < 5.0, f"answers resumed {gap:.1f} s after the worker died"
     print(f"\nstandby: answers resumed {gap:.2f} s after the worker died")
+
+
+def test_child_processes_get_their_region_identity_and_ports() -> None:
+    from laas.run.workers import child_argv
+
+    argv = ["--cluster", "mqtt://h:1", "--processes", "3", "--metrics-port=9000", "--http", "0"]
+    child = child_argv(argv, 1, 3, Path("/k.pem"))
+    assert child == [
+        "--cluster",
+        "mqtt://h:1",
+        "--region",
+        "2/3",
+        "--identity",
+        "/k.pem",
+        "--metrics-port",
+        "9001",
+        "--http",
+        "0",
+    ]
+
+
+def test_a_worker_node_serves_the_map_as_regions_in_processes(tmp_path: Path) -> None:
+    """`laas worker --processes 2`: two child workers announce laas-1of2 and laas-2of2
+    in the laas family under one identity, with coverages; on SIGTERM both withdraw."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from ldm import EmbeddedBroker
+    from ldm.brokers import wait_for
+    from ldm.messages import Announcement
+    from ldm.transport import Event, Message, Transport
+
+    broker = EmbeddedBroker(port=0).start()
+    seen: dict[str, bytes] = {}
+
+    def sink(event: Event) -> None:
+        if isinstance(event, Message):
+            seen[event.topic] = event.payload
+
+    watcher = Transport(BrokerSettings.of(broker.url), client_id="watch", sink=sink)
+    watcher.subscribe("ldm/svc/+/announce", 1)
+    watcher.start(5)
+    node = subprocess.Popen(
+        [sys.executable, "-m", "laas.cli", "worker", "--cluster", broker.url, "--processes", "2"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        names = ("laas-1of2", "laas-2of2")
+        topics_ = [f"ldm/svc/{n}/announce" for n in names]
+        assert wait_for(lambda: all(seen.get(t) for t in topics_), 60), seen.keys()
+        anns = [Announcement.model_validate_json(seen[t]) for t in topics_]
+        assert [a.service.name for a in anns] == list(names)
+        assert {a.service.family for a in anns} == {"laas"}
+        assert anns[0].service.identity == anns[1].service.identity is not None
+        assert all(a.service.coverage for a in anns)
+        node.send_signal(signal.SIGTERM)
+        assert node.wait(30) == 0
+        time.sleep(0.5)
+        for t in topics_:  # withdrawn: the signed goodbye replaces the announcement
+            assert "withdrawn" in json.loads(seen[t])
+    finally:
+        if node.poll() is None:
+            node.kill()
+        watcher.stop()
+        broker.stop()

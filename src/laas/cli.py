@@ -250,6 +250,14 @@ def _broker(a: argparse.Namespace) -> BrokerSettings:
 
 
 def _cmd_worker(a: argparse.Namespace) -> int:
+    if a.processes < 1:
+        raise ConfigError(f"--processes {a.processes}: give at least 1")
+    if a.processes > 1:
+        if a.region is not None or a.standby:
+            raise ConfigError("--processes serves every region itself: drop --region/--standby")
+        from laas.run.workers import serve_processes
+
+        return serve_processes(a.argv, a.processes, a.identity)
     configure(
         a.log_format,
         component="laas-worker",
@@ -265,13 +273,30 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 
 def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
-    from laas.service import start_worker
+    from laas.regions import parse_region, split
+    from laas.service import SERVICE_NAME, start_worker
 
     hdmap = HdMap.load(a.map)
+    region = None
+    if a.region is not None:
+        k, count = parse_region(a.region)
+        region = split(hdmap, count, overlap=a.overlap)[k]
+    if a.standby:
+        from ldm.standby import wait_until_vacant
+
+        if a.identity is None:
+            raise ConfigError(
+                "a standby serves under the active worker's identity: give --identity "
+                "with the same key file"
+            )
+        name = SERVICE_NAME if region is None else region.name
+        print(f"laas worker: standby for {name!r}, waiting until it is vacant", flush=True)
+        wait_until_vacant(_broker(a), name)
     provider, service = start_worker(
         _broker(a),
         hdmap,
         _engine_config(a),
+        region=region,
         data_qos=a.data_qos,
         identity_file=a.identity,
         endorsement=a.endorsement,
@@ -584,6 +609,32 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("LAAS_ENDORSEMENT"),
         help="a trust anchor's endorsement of the identity (`ldm keys endorse`)",
     )
+    p.add_argument(
+        "--region",
+        default=os.environ.get("LAAS_REGION"),
+        metavar="K/N",
+        help="serve strip K of the map cut into N (env LAAS_REGION; laas.regions): "
+        "participants route their fixes here by position",
+    )
+    p.add_argument(
+        "--overlap",
+        type=float,
+        default=150.0,
+        help="with --region: metres each strip reaches into its neighbours (default 150)",
+    )
+    p.add_argument(
+        "--processes",
+        type=int,
+        default=int(os.environ.get("LAAS_PROCESSES", "1")),
+        help="serve the map as this many regions, one worker process each (env "
+        "LAAS_PROCESSES; default 1)",
+    )
+    p.add_argument(
+        "--standby",
+        action="store_true",
+        help="wait until the worker of this service (or --region) is gone, then take "
+        "over under the same --identity",
+    )
     _engine_args(p)
     operations_args(p, "LAAS")
     p.set_defaults(func=_cmd_worker)
@@ -705,6 +756,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `laas` command line and return its exit status."""
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)[1:]  # after the command
     try:
         code: int = args.func(args)
     except (LaasError, LdmError, TimeoutError) as exc:

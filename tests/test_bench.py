@@ -127,3 +127,22 @@ def test_bench_load_generator_answers_every_fix_of_200_participants() -> None:
     assert report.privacy == []
     assert any(line.startswith("  ramp: ") for line in lines)
     assert sum("sessions open after" in line for line in lines) == 2
+
+
+def test_bench_with_two_regional_workers_answers_every_fix() -> None:
+    """`laas bench --workers 2`: two worker processes, each serving a strip of the map;
+    each participant routes its fixes by position, and every fix is answered."""
+    config = BenchConfig(
+        participants=8,
+        rate=2.0,
+        duration=3.0,
+        brokers="embedded",
+        processes=2,
+        privacy=False,
+        workers=2,
+    )
+    report = run_bench(config)
+    assert report.workers == 2
+    assert report.answered == report.sent >= 8 * 2 * 3, report.errors
+    assert report.worker_answered == report.sent
+    assert "2 regional laas workers" in format_report(report)

@@ -220,6 +220,7 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         connect_rate=a.connect_rate,
         spread=a.spread,
         privacy=not a.no_privacy,
+        workers=a.workers,
     )
     report = run_bench(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_report(report))
@@ -568,6 +569,12 @@ def build_parser() -> argparse.ArgumentParser:
             "against one filterpy Kalman step (--participants users roaming --map for "
             "--duration simulated seconds)"
         ),
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="worker processes, each serving a region of the map (default 1)",
     )
     p.add_argument("--map", default="messe-hamburg", help="with --worker-only: bundled map to roam")
     p.add_argument(

@@ -79,6 +79,13 @@ class RoutedSession:
         """The name of the provider the last input went to."""
         return None if self._current is None else self._current.name
 
+    def prepare(self, where: tuple[float, float]) -> str:
+        """Open the session for (longitude, latitude) `where` now, before the first
+        input; the name of the provider chosen."""
+        self._session(where)
+        assert self._current is not None
+        return self._current.name
+
     def submit(self, payload: Mapping[str, Any], where: tuple[float, float]) -> Future[Payload]:
         """Send one input to the provider for (longitude, latitude) `where`."""
         return self._session(where).submit(payload)

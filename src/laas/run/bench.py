@@ -70,7 +70,7 @@ from laas.sim.scenario import (
     simulate,
 )
 from laas.sim.score import score
-from ldm import BrokerSettings, Session
+from ldm import BrokerSettings, RoutedSession, Session
 from ldm.brokers import find_mosquitto
 from ldm.hops import Hops
 from ldm.transport import Event, Message, Transport
@@ -110,6 +110,7 @@ class BenchConfig:
     connect_rate: float = 200.0  # new connections per second, over all processes
     spread: bool = False  # fixes spread over the second, not all on the whole second
     privacy: bool = True  # the two Hamburg runs after the load (the cost of privacy)
+    workers: int = 1  # worker processes, each serving a region of the map (laas.regions)
 
     def __post_init__(self) -> None:
         if self.participants < 1:
@@ -124,6 +125,8 @@ class BenchConfig:
             raise ConfigError("--processes must be at least 1")
         if not self.connect_rate > 0.0:
             raise ConfigError("--connect-rate must be positive")
+        if self.workers < 1:
+            raise ConfigError("--workers must be at least 1")
 
 
 @dataclass(frozen=True)
@@ -177,6 +180,7 @@ class BenchReport:
     bare_lost: int
     dropped_stale: int  # by the cores, over max_age
     worker_answered: int
+    workers: int = 1  # worker processes, each serving a region
     spread: bool = False  # fixes spread over the second (else all on the whole second)
     ramp: float = math.nan  # s from the first connection to the last session open
     cpu_participants: float = math.nan  # CPU s per s of sending, all participant processes
@@ -287,6 +291,7 @@ class _Shard:
     reply_timeout: float
     trust: dict[str, Any]  # the participants' pinned keys (LocalDeployment.trust)
     connect_rate: float  # this process's share of BenchConfig.connect_rate
+    regional: bool = False  # route each user to the worker of its region (RoutedSession)
 
 
 def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, abort: Any) -> None:
@@ -316,6 +321,7 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
                 paced_sessions(
                     logins,
                     connect_rate=shard.connect_rate,
+                    where=_first_positions(shard.sends) if shard.regional else None,
                     progress=lambda stage, done, total: results.put(
                         ("ramp", shard.index, (stage, done, total))
                     ),
@@ -333,7 +339,7 @@ def _participant_process(shard: _Shard, results: Any, go: Any, start_at: Any, ab
 
 def _drive(
     shard: _Shard,
-    sessions: dict[str, Session],
+    sessions: dict[str, Session] | dict[str, RoutedSession],
     bare: Transport,
     pongs: dict[int, float],
     results: Any,
@@ -435,10 +441,17 @@ def _deployment(
     hdmap: HdMap,
     rotation_period: float,
     hops: Hops | None = None,
+    workers: int = 1,
 ) -> LocalDeployment:
-    """The three brokers, the two cores in this process and the worker in its own."""
+    """The three brokers, the two cores in this process and the workers, each in its
+    own process (with several, each serving a region of the map)."""
     return LocalDeployment(
-        hdmap, brokers=kind, rotation_period=rotation_period, worker_process=True, hops=hops
+        hdmap,
+        brokers=kind,
+        rotation_period=rotation_period,
+        worker_process=True,
+        hops=hops,
+        regions=workers,
     )
 
 
@@ -452,9 +465,20 @@ def _shards(
         sends[owner[fix.user]].append((fix.user, fix.measurement.model_dump(exclude_none=True)))
     tag = secrets.token_hex(3)
     rate = config.connect_rate / processes
+    regional = config.workers > 1
     return [
-        _Shard(k, url, tag, s, config.reply_timeout, trust, rate) for k, s in enumerate(sends) if s
+        _Shard(k, url, tag, s, config.reply_timeout, trust, rate, regional)
+        for k, s in enumerate(sends)
+        if s
     ]
+
+
+def _first_positions(sends: Sequence[tuple[str, dict[str, Any]]]) -> dict[str, tuple[float, float]]:
+    """Each user's first (longitude, latitude): where its session is routed first."""
+    first: dict[str, tuple[float, float]] = {}
+    for user, m in sends:
+        first.setdefault(user, (m["longitude"], m["latitude"]))
+    return first
 
 
 def _load(
@@ -563,6 +587,7 @@ def _load(
         bare_lost=sum(p["bare_lost"] for p in parts),
         dropped_stale=sum(c.stats.dropped_stale for c in deployment.cores.values()),
         worker_answered=-1,  # known when the deployment stops
+        workers=config.workers,
         spread=config.spread,
         ramp=ramp,
         cpu_participants=sum(p["cpu"] for p in parts) / config.duration,
@@ -615,7 +640,7 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
         f"connecting {config.connect_rate:g}/s"
     )
     hops = Hops()
-    deployment = _deployment(kind, hdmap, config.rotation_period, hops)
+    deployment = _deployment(kind, hdmap, config.rotation_period, hops, config.workers)
     with deployment:
         report = _load(config, deployment, trace, say)
     report.worker_answered = deployment.worker_answered
@@ -632,7 +657,8 @@ def format_report(r: BenchReport) -> str:
     """The table `laas bench` prints."""
     lines = [
         f"laas bench: {r.participants} participants at {r.rate:g} Hz for {r.duration:g} s "
-        f"through 3 {r.brokers} brokers, 2 LDM cores and the laas worker",
+        f"through 3 {r.brokers} brokers, 2 LDM cores and "
+        + ("the laas worker" if r.workers == 1 else f"{r.workers} regional laas workers"),
         f"(participants in {r.processes} processes, ramp {r.ramp:.1f} s; fixes "
         f"{'spread over the period' if r.spread else 'aligned to the period'}; "
         "floor: MQTT echo over the user broker)",

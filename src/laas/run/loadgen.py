@@ -28,7 +28,7 @@ from typing import Any
 
 from laas.run.participants import Login, wait_for_service
 from laas.service import SERVICE_NAME
-from ldm import Participant, Session
+from ldm import Participant, RoutedSession, Session
 from ldm.errors import ConnectError
 from ldm.transport import ClientLoop
 
@@ -50,12 +50,15 @@ def paced_sessions(
     discovery_timeout: float = 30.0,
     session_timeout: float = 10.0,
     progress: RampProgress | None = None,
+    where: Mapping[str, tuple[float, float]] | None = None,
     **participant_settings: Any,
-) -> Iterator[dict[str, Session]]:
+) -> Iterator[dict[str, Session] | dict[str, RoutedSession]]:
     """Start one participant per road user on a shared `ClientLoop`, `connect_rate`
     connections a second, wait until all are connected (`connect_timeout` s after the
     last one started; ConnectError if not), wait for the laas service, open a session
-    each; everything stops when the block ends."""
+    each; everything stops when the block ends. With `where` (each user's first
+    position, lon/lat), each gets a `RoutedSession` instead, opened with the worker of
+    that position's region."""
     if connect_rate <= 0.0:
         raise ValueError("connect_rate must be positive")
     report = progress or (lambda _stage, _done, _total: None)
@@ -88,8 +91,7 @@ def paced_sessions(
             time.sleep(0.05)
         report("connect", total, total)
         wait_for_service(next(iter(participants.values())), discovery_timeout)
-        sessions = _open_all(participants, session_timeout, report)
-        yield sessions
+        yield _open_all(participants, session_timeout, report, where)
     finally:
         for participant in participants.values():
             participant.stop()
@@ -101,9 +103,21 @@ def _connected(participants: Mapping[str, Participant]) -> int:
 
 
 def _open_all(
-    participants: Mapping[str, Participant], timeout: float, report: RampProgress
-) -> dict[str, Session]:
-    """A session for each participant, `_SESSION_THREADS` requests in flight."""
+    participants: Mapping[str, Participant],
+    timeout: float,
+    report: RampProgress,
+    where: Mapping[str, tuple[float, float]] | None = None,
+) -> dict[str, Session] | dict[str, RoutedSession]:
+    """A session for each participant (routed by `where`, if given), `_SESSION_THREADS`
+    requests in flight."""
+    if where is not None:
+        routed = {u: RoutedSession(p, SERVICE_NAME, timeout) for u, p in participants.items()}
+        with ThreadPoolExecutor(_SESSION_THREADS, thread_name_prefix="laas-open") as pool:
+            prepared = [pool.submit(r.prepare, where[u]) for u, r in routed.items()]
+            for done in prepared:
+                done.result()  # raises the first failure
+        report("session", len(routed), len(routed))
+        return routed
     total = len(participants)
     sessions: dict[str, Session] = {}
     next_report = time.monotonic() + 1.0

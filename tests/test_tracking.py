@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -62,7 +63,6 @@ def test_without_kalman_the_track_is_the_raw_fix() -> None:
 def test_the_track_is_filterpys_kalman_filter_to_rounding() -> None:
     """The written-out predict and update against filterpy's own KalmanFilter and
     Q_discrete_white_noise on the same fixes: irregular steps, turns, stops."""
-    from filterpy.common import Q_discrete_white_noise
     from filterpy.kalman import KalmanFilter
 
     config = EngineConfig(sigma_pos=1.5, sigma_accel=0.9)
@@ -80,24 +80,14 @@ def test_the_track_is_filterpys_kalman_filter_to_rounding() -> None:
         speed = max(0.0, 8.0 + rng.normal(0, 3.0))
         fix = _fix(t, e + rng.normal(0, 30), n + rng.normal(0, 30), speed, rng.uniform(0, 360))
         assert track.update(fix) is TrackUpdate.ACCEPTED
-        f = np.eye(4)
-        f[0, 2] = f[1, 3] = dt
-        q = Q_discrete_white_noise(
-            dim=2, dt=dt, var=config.sigma_accel**2, block_size=2, order_by_dim=False
-        )
-        kf.predict(F=f, Q=q)
-        kf.update(np.array([fix.e, fix.n, *fix.velocity]), R=track._measurement_noise(fix))
-        np.testing.assert_allclose(track.position, kf.x[:2, 0], rtol=0, atol=1e-9)
-        np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
-        np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)
+        _filterpy_step(kf, config, dt, fix, track)
+        _assert_same(track, kf)
 
 
 def test_a_batch_of_tracks_steps_as_filterpy_steps_each() -> None:
     """`kalman_steps` on five tracks at once, each with its own irregular steps, speeds
     and headings (one with the receiver's own accuracy), against one filterpy
     KalmanFilter per track."""
-    from filterpy.common import Q_discrete_white_noise
     from filterpy.kalman import KalmanFilter
 
     config = EngineConfig(sigma_pos=1.5, sigma_accel=0.9)
@@ -125,15 +115,27 @@ def test_a_batch_of_tracks_steps_as_filterpy_steps_each() -> None:
         steps = [fx.t - tr.t for tr, fx in zip(tracks, fixes, strict=True)]
         kalman_steps(tracks, fixes)
         for track, kf, fix, dt in zip(tracks, filters, fixes, steps, strict=True):
-            f = np.eye(4)
-            f[0, 2] = f[1, 3] = dt
-            q = Q_discrete_white_noise(
-                dim=2, dt=dt, var=config.sigma_accel**2, block_size=2, order_by_dim=False
-            )
-            kf.predict(F=f, Q=q)
-            kf.update(np.array([fix.e, fix.n, *fix.velocity]), R=track._measurement_noise(fix))
+            _filterpy_step(kf, config, dt, fix, track)
             assert track.t == fix.t and track.dt == dt and track.last_fix is fix
-            np.testing.assert_allclose(track.position, kf.x[:2, 0], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
-            np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)
+            _assert_same(track, kf)
+
+
+def _filterpy_step(kf: Any, config: EngineConfig, dt: float, fix: Fix, track: Track) -> None:
+    """filterpy's own predict and update for the track's model, R from the track."""
+    from filterpy.common import Q_discrete_white_noise
+
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt
+    q = Q_discrete_white_noise(
+        dim=2, dt=dt, var=config.sigma_accel**2, block_size=2, order_by_dim=False
+    )
+    kf.predict(F=f, Q=q)
+    kf.update(np.array([fix.e, fix.n, *fix.velocity]), R=track._measurement_noise(fix))
+
+
+def _assert_same(track: Track, kf: Any) -> None:
+    """The track's state and covariance are filterpy's, to rounding."""
+    np.testing.assert_allclose(track.position, kf.x[:2, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(track.velocity, kf.x[2:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(track.position_cov, kf.P[:2, :2], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(track.velocity_cov, kf.P[2:, 2:], rtol=1e-9, atol=1e-12)

@@ -201,6 +201,8 @@ def _cmd_demo(a: argparse.Namespace) -> int:
         sigma_pos=a.sigma_pos,
         speedup=a.speedup,
         brokers=a.brokers,
+        http_port=a.http,
+        http_host=a.http_host,
     )
 
 
@@ -312,9 +314,17 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
         f"{provider.identity.public}",
         flush=True,
     )
+    live_map = None
     try:
+        if a.http is not None:
+            from laas.dashboard import DashboardServer
+
+            live_map = DashboardServer(service, provider, host=a.http_host, port=a.http)
+            print(f"laas worker: live map on {live_map.url}", flush=True)
         wait_for_signal()
     finally:
+        if live_map is not None:
+            live_map.stop()
         provider.stop()
         s = service.stats
         print(
@@ -397,6 +407,24 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
         type=Path,
         default=os.environ.get(f"{env_prefix}_CA_FILE"),
         help="CA certificates for an mqtts:// broker",
+    )
+
+
+def _http_args(p: argparse.ArgumentParser, default: int | None) -> None:
+    """--http and --http-host: the live map (`laas.dashboard`)."""
+    p.add_argument(
+        "--http",
+        type=int,
+        metavar="PORT",
+        default=os.environ.get("LAAS_HTTP_PORT", default),  # argparse converts a string
+        help="serve the live map on this port; 0 picks a free one (env LAAS_HTTP_PORT; "
+        + ("default: no live map)" if default is None else f"default {default})"),
+    )
+    p.add_argument(
+        "--http-host",
+        metavar="HOST",
+        default=os.environ.get("LAAS_HTTP_HOST", "127.0.0.1"),
+        help="address of the live map (env LAAS_HTTP_HOST; default 127.0.0.1)",
     )
 
 
@@ -529,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="broker kind (auto: Mosquitto if installed, else the embedded broker)",
     )
+    _http_args(p, default=0)
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("bench", help="latency and throughput through the full LDM topology")
@@ -644,6 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _engine_args(p)
     operations_args(p, "LAAS")
+    _http_args(p, default=None)
     p.set_defaults(func=_cmd_worker)
 
     p = sub.add_parser("simulate", help="run a scenario's road users as live LDM participants")

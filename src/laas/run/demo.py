@@ -3,7 +3,8 @@
 Starts three brokers, two LDM cores and the LaaS worker on this machine, runs the
 simulated road users of the Hamburg scenario as real participants (sped up), and ends
 with the accuracy of what they received over MQTT beside the offline engine on the same
-fixes, and the pictures of the paper's Fig. 3 and Fig. 4.
+fixes, and the pictures of the paper's Fig. 3 and Fig. 4. While the road users run, the
+worker's live map is served (`laas.dashboard`) and its URL printed at the start.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import sys
 from pathlib import Path
 
 from laas.config import EngineConfig
+from laas.dashboard import DashboardServer
+from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from laas.run.deployment import BrokerChoice, LocalDeployment
@@ -38,8 +41,11 @@ def run_demo(
     sigma_vel: float = 0.25,
     speedup: float = 10.0,
     brokers: BrokerChoice = "auto",
+    http_port: int = 0,
+    http_host: str = "127.0.0.1",
 ) -> int:
-    """Run the demo; print the table; write the pictures to `out`."""
+    """Run the demo; print the table; write the pictures to `out`. The live map is served
+    on `http_host`:`http_port` (0: a free port) while the road users run."""
     scenario = hamburg_scenario()
     hdmap = HdMap.load(scenario.map)
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
@@ -56,14 +62,23 @@ def run_demo(
             "service), 2 LDM cores and the laas worker; participants pin the worker's "
             "identity and the user core's key"
         )
-        print(f"running the road users as LDM participants at {speedup:g}x real time:")
-        live = run_participants(
-            deployment.user_url,
-            trace,
-            speedup=speedup,
-            progress=progress_printer("  sent", "fixes"),
-            **deployment.trust,
+        if deployment.service is None:
+            raise ConfigError("the demo's worker runs in this process; it has not started")
+        live_map = DashboardServer(
+            deployment.service, deployment.provider, host=http_host, port=http_port
         )
+        try:
+            print(f"live map: {live_map.url} (while the road users run)", flush=True)
+            print(f"running the road users as LDM participants at {speedup:g}x real time:")
+            live = run_participants(
+                deployment.user_url,
+                trace,
+                speedup=speedup,
+                progress=progress_printer("  sent", "fixes"),
+                **deployment.trust,
+            )
+        finally:
+            live_map.stop()
     for error in live.errors[:5]:
         print(f"  {error}", file=sys.stderr)
     if not live.answered:

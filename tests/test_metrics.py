@@ -231,7 +231,14 @@ def test_the_scrape_config_covers_every_compose_service_with_metrics() -> None:
         if port is not None:
             assert str(port) in [str(p) for p in service.get("expose", [])], name
             serving[name] = f"{name}:{port}"
-    assert set(serving) == {"core-user", "core-service", "worker"}
+    cluster = {  # profile `cluster`
+        "core-service-cluster",
+        "worker-1of2",
+        "worker-2of2",
+        "worker-1of2-standby",
+        "worker-2of2-standby",
+    }
+    assert set(serving) == {"core-user", "core-service", "worker", *cluster}
     scrape = yaml.safe_load((root / "deploy" / "prometheus.yml").read_text())
     targets = {
         target

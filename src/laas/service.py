@@ -347,10 +347,7 @@ def start_worker(
         **provider_settings,
     )
     provider.start()
-    log.info(
-        "%s serving map %s on %s",
-        provider.name,
-        hdmap.source,
-        BrokerSettings.of(cluster).url,
-    )
+    log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)
+    if region is not None:
+        log.info("laas worker serving region %s", region.name)
     return provider, service

@@ -24,6 +24,7 @@ from ldm.transport import Event, Message, Transport
 def test_public_api_is_pinned() -> None:
     assert sorted(ldm.__all__) == sorted(
         [
+            "BatchHandler",
             "BrokerProcess",
             "BrokerSettings",
             "ConfigError",
@@ -44,6 +45,7 @@ def test_public_api_is_pinned() -> None:
             "Request",
             "RequestRejected",
             "RequestTimeout",
+            "RoutedSession",
             "ServiceDescription",
             "ServiceNotFound",
             "ServiceSpec",

@@ -159,6 +159,10 @@ class Transport:
         """Connections lost so far (a participant uses it to explain a lost request)."""
         self.dropped_topics = 0
         """Messages dropped because their topic was not valid UTF-8 (paho's thread)."""
+        self.dropped_foreign = 0
+        """Messages dropped because their topic matches none of our subscriptions: a
+        broker's mistake (amqtt, the embedded broker, was seen delivering the retained
+        service list to other subscribers), never handed to the owner."""
         self.address = settings.addresses[0]
         """The (host, port) of the node this transport connects to, or did last."""
         self._attempts = 0  # connection attempts so far: the next address is the next one
@@ -277,6 +281,11 @@ class Transport:
         except UnicodeDecodeError:  # paho decodes the topic lazily; it must not escape here
             self.dropped_topics += 1
             log.debug("%s: dropped a message whose topic is not UTF-8", self.name)
+            return
+        filters = list(self._subscriptions)  # a snapshot: subscribe() may add one meanwhile
+        if not any(mqtt.topic_matches_sub(f, event.topic) for f in filters):
+            self.dropped_foreign += 1
+            log.debug("%s: dropped a message on a topic it did not subscribe to", self.name)
             return
         self._sink(event)
 

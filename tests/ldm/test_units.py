@@ -194,12 +194,27 @@ def test_a_topic_that_is_not_utf8_is_counted_not_raised_on_pahos_thread() -> Non
 
     got: list[Event] = []
     transport = Transport(BrokerSettings.of("mqtt://127.0.0.1:9"), client_id="t", sink=got.append)
+    transport.subscribe("ldm/#", 1)  # not connected: noted, sent on connecting
     bad = mqtt.MQTTMessage(topic=b"ldm/p/\xff/up/session")
     good = mqtt.MQTTMessage(topic=b"ldm/services")
     transport._on_message(transport._client, None, bad)
     transport._on_message(transport._client, None, good)
     assert transport.dropped_topics == 1
     assert [e.topic for e in got if isinstance(e, Message)] == ["ldm/services"]
+
+
+def test_a_message_on_a_topic_not_subscribed_to_never_reaches_the_owner() -> None:
+    """A broker that delivers a message to a client that did not subscribe to its topic
+    (amqtt was seen doing it with the retained service list) is not believed."""
+    import paho.mqtt.client as mqtt  # only to build the message paho would hand over
+
+    got: list[Event] = []
+    transport = Transport(BrokerSettings.of("mqtt://127.0.0.1:9"), client_id="t", sink=got.append)
+    transport.subscribe("laas/cam/+", 1)
+    for topic in (b"laas/cam/car_1", b"ldm/services", b"laas/cam/car_1/extra"):
+        transport._on_message(transport._client, None, mqtt.MQTTMessage(topic=topic))
+    assert [e.topic for e in got if isinstance(e, Message)] == ["laas/cam/car_1"]
+    assert transport.dropped_foreign == 2
 
 
 def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:

@@ -46,14 +46,23 @@ class MqttBridge(ABC):
         self._inbox: queue.SimpleQueue[object] = queue.SimpleQueue()
         client_id = client_id or broker.username or f"{name}-{secrets.token_hex(4)}"
         self.transport = Transport(broker, client_id=client_id, sink=self._inbox.put, name=name)
-        for topic_filter in subscriptions:
+        self._filters = list(subscriptions)
+        for topic_filter in self._filters:
             self.transport.subscribe(topic_filter, 1)
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self, timeout: float | None = 10.0) -> MqttBridge:
-        """Start the bridge's thread, then connect (waiting up to `timeout` s)."""
+        """Start the bridge's thread, then connect and wait until the broker has taken
+        its subscriptions (up to `timeout` s each), so no device message sent after
+        this returns is missed."""
         self._thread.start()
         self.transport.start(timeout)
+        deadline = time.monotonic() + (10.0 if timeout is None else timeout)
+        while any(f not in self.transport.granted for f in self._filters):
+            if time.monotonic() > deadline:
+                log.warning("%s: the broker has not confirmed its subscriptions yet", self.name)
+                break
+            time.sleep(0.01)
         return self
 
     def stop(self) -> None:

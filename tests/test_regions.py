@@ -84,6 +84,10 @@ def test_two_workers_split_hamburg_and_answer_users_across_the_border(hamburg_ma
         sides.setdefault(fix.user, set()).add((x if along_x else y) > border)
     assert any(len(s) == 2 for s in sides.values()), "no user crosses the border"
     online = score(hamburg_map, trace, live.answers)
+    print(
+        f"\nregions: lane accuracy {online.accuracy:.3f} with two workers (answered "
+        f"{shares[0]} + {shares[1]}), {offline.accuracy:.3f} with one"
+    )
     assert abs(online.accuracy - offline.accuracy) <= 0.02, (online.accuracy, offline.accuracy)
 
 

@@ -220,3 +220,82 @@ def test_laas_gpsd_reads_an_nmea_file_and_prints_the_answers(
     assert "5 fixes sent, 5 answered, 1 malformed" in err
     assert main(["gpsd", "--cluster", deployment.user_url]) == 2
     assert "give one source" in capsys.readouterr().err
+
+
+def test_laas_cam_serves_its_metrics_and_logs_json(
+    deployment: LocalDeployment, hamburg_map: HdMap, car: list[GpsMeasurement], tmp_path: Path
+) -> None:
+    """`laas cam --metrics-port 0 --log-format json`, a real process: ready once
+    connected; after five CAMs of one station and a malformed one, /metrics counts one
+    device, five fixes answered and one malformed message, with no device in a label;
+    its log lines are JSON objects with the bridge as component."""
+    from tests.operations import LAAS, Child, Scrape, checks
+
+    bridge = Child(
+        [
+            *LAAS,
+            "cam",
+            "--cluster",
+            deployment.user_url,
+            "--map",
+            str(hamburg_map.source),
+            "--metrics-port",
+            "0",
+            "--log-format",
+            "json",
+            "--log-level",
+            "info",
+        ],
+        tmp_path / "cam.log",
+        env={"LAAS_SERVICE_KEY": deployment.trust["service_keys"]["laas"]},
+    )
+    station, inbox = client(deployment.user_url, "cam-metrics-station", "laas/cam/#")
+    try:
+        base = bridge.metrics_base()
+        assert wait_for(lambda: checks(base, "/readyz")[0] == 200, 15)
+        assert checks(base, "/healthz")[0] == 200
+        for i, fix in enumerate(now_shifted(car[:5])):
+            cam = {
+                "message_type": "cam",
+                "source_uuid": "car_9",
+                "timestamp": fix.timestamp,
+                "version": "2.1.0-dev",
+                "message": {
+                    "protocol_version": 1,
+                    "station_id": 9,
+                    "generation_delta_time": i,
+                    "basic_container": {
+                        "station_type": 5,
+                        "reference_position": {
+                            "latitude": round(fix.latitude * 1e7),
+                            "longitude": round(fix.longitude * 1e7),
+                            "altitude": {"value": round(fix.altitude * 100)},
+                        },
+                    },
+                    "high_frequency_container": {
+                        "heading": round(fix.heading * 10) % 3600,
+                        "speed": round(fix.speed * 100),
+                    },
+                },
+            }
+            station.publish("v2x/cam/car_9", json.dumps(cam).encode(), 1)
+            time.sleep(0.05)
+        station.publish("v2x/cam/car_9", b"{not json", 1)
+        assert wait_for(lambda: len(inbox) >= 5, 15), len(inbox)
+        scrape = Scrape(base)
+        assert wait_for(
+            lambda: Scrape(base).value("laas_bridge_messages_total", outcome="malformed") == 1, 5
+        )
+        scrape = Scrape(base)
+        assert scrape.value("laas_bridge_devices") == 1
+        assert scrape.value("laas_bridge_sessions_total", event="opened") == 1
+        assert scrape.value("laas_bridge_messages_total", outcome="fixes") == 5
+        assert scrape.value("laas_bridge_messages_total", outcome="answered") == 5
+        assert "car_9" not in scrape.text
+    finally:
+        station.stop()
+        code = bridge.stop()
+    assert code == 0, bridge.log()
+    records = [line for line in bridge.log().splitlines() if line.startswith("{")]
+    assert records, bridge.log()
+    assert all(json.loads(line)["component"] == "laas-cam" for line in records)

@@ -11,12 +11,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from laas.bridges.metrics import watch_bridge
 from laas.bridges.pool import Answer, DevicePool, PoolConfig
 from laas.errors import ConfigError
 from laas.models import CorrectedPosition
 from ldm import BrokerSettings
-from ldm.cli import broker_settings, wait_for_signal
+from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
+from ldm.logs import configure
 
 __all__ = ["add_bridge_commands"]
 
@@ -24,9 +26,11 @@ ConnectionArgs = Callable[[argparse.ArgumentParser, str], None]
 
 
 def _logging(a: argparse.Namespace) -> None:
-    logging.basicConfig(
+    configure(
+        getattr(a, "log_format", None),  # laas gpsd, a run that ends: LDM_LOG_FORMAT only
+        component=f"laas-{a.command}",
         level=getattr(logging, a.log_level.upper()),
-        format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
+        text_format="ts=%(asctime)s level=%(levelname)s logger=%(name)s msg=%(message)s",
     )
 
 
@@ -88,12 +92,23 @@ def _pool_args(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _serve(bridge: Any, what: str) -> int:
+def _serve(bridge: Any, what: str, a: argparse.Namespace) -> int:
+    served = start_metrics(a, f"laas {what}")  # /readyz: 503 until the bridge is connected
+    if served is not None:
+        watch_bridge(
+            served[0],
+            f"laas {what}",
+            bridge.pool,
+            alive=lambda: bridge.alive,
+            connected=lambda: bridge.transport.connected,
+        )
     bridge.start()
     print(f"laas {what}: serving on {bridge.transport.settings.url}", file=sys.stderr, flush=True)
     try:
         wait_for_signal()
     finally:
+        if served is not None:
+            served[1].stop()
         bridge.stop()
         s = bridge.pool.stats
         print(
@@ -112,7 +127,7 @@ def _cmd_owntracks(a: argparse.Namespace) -> int:
     own = _own_broker(a)
     secrets = read_secrets(a.secrets) if a.secrets else {}
     config = build(OwnTracksConfig, prefix=a.prefix, secrets=secrets, card_name=a.card_name)
-    return _serve(OwnTracksBridge(own, _pool(a, own), config), "owntracks")
+    return _serve(OwnTracksBridge(own, _pool(a, own), config), "owntracks", a)
 
 
 def _cmd_cam(a: argparse.Namespace) -> int:
@@ -122,7 +137,7 @@ def _cmd_cam(a: argparse.Namespace) -> int:
     _logging(a)
     own = _own_broker(a)
     config = build(CamConfig, topic_filter=a.topic, answer_topic=a.answer_topic, prefix=a.prefix)
-    return _serve(CamBridge(own, _pool(a, own), HdMap.load(a.map), config), "cam")
+    return _serve(CamBridge(own, _pool(a, own), HdMap.load(a.map), config), "cam", a)
 
 
 def _print_answer(answer: Answer) -> None:
@@ -172,6 +187,7 @@ def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
     )
     p.add_argument("--card-name", default="my lane position", help="the answers' name in the app")
     _pool_args(p)
+    operations_args(p, "LAAS")
     p.set_defaults(func=_cmd_owntracks)
 
     p = sub.add_parser("gpsd", help="a receiver (gpsd or NMEA) as one participant")
@@ -198,4 +214,5 @@ def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
     )
     p.add_argument("--prefix", default="cam.", help="device client ids: PREFIX + uuid.station")
     _pool_args(p)
+    operations_args(p, "LAAS")
     p.set_defaults(func=_cmd_cam)

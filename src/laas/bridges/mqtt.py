@@ -65,6 +65,11 @@ class MqttBridge(ABC):
             time.sleep(0.01)
         return self
 
+    @property
+    def alive(self) -> bool:
+        """Whether the bridge's thread runs (started and not stopped)."""
+        return self._thread.is_alive()
+
     def stop(self) -> None:
         """Disconnect, stop the thread and close every device's participant."""
         self.transport.stop()

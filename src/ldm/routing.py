@@ -21,6 +21,7 @@ position (docs/security.md).
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Mapping
 from concurrent.futures import Future
@@ -41,7 +42,15 @@ Payload = dict[str, Any]
 
 def _polygon(desc: ServiceDescription) -> Any:
     assert desc.coverage is not None
-    return shapely.Polygon(desc.coverage)
+    return _prepared(tuple(desc.coverage))
+
+
+@functools.lru_cache(maxsize=256)
+def _prepared(ring: tuple[tuple[float, float], ...]) -> Any:
+    """A coverage as a prepared shapely polygon, built once (every input asks)."""
+    polygon = shapely.Polygon(ring)
+    shapely.prepare(polygon)
+    return polygon
 
 
 def covers(desc: ServiceDescription, where: tuple[float, float]) -> bool:

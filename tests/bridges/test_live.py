@@ -46,6 +46,33 @@ def client(url: str, name: str, *subscriptions: str) -> tuple[Transport, list[Me
     return t, inbox
 
 
+def cam_message(fix: GpsMeasurement, i: int, uuid: str, station_id: int) -> dict[str, Any]:
+    """Fix `i` of a passenger car as its-client publishes a CAM (ETSI units)."""
+    return {
+        "message_type": "cam",
+        "source_uuid": uuid,
+        "timestamp": fix.timestamp,
+        "version": "2.1.0-dev",
+        "message": {
+            "protocol_version": 1,
+            "station_id": station_id,
+            "generation_delta_time": i,
+            "basic_container": {
+                "station_type": 5,
+                "reference_position": {
+                    "latitude": round(fix.latitude * 1e7),
+                    "longitude": round(fix.longitude * 1e7),
+                    "altitude": {"value": round(fix.altitude * 100)},
+                },
+            },
+            "high_frequency_container": {
+                "heading": round(fix.heading * 10) % 3600,
+                "speed": round(fix.speed * 100),
+            },
+        },
+    }
+
+
 def now_shifted(fixes: list[GpsMeasurement], lead_s: float = 15.0) -> list[GpsMeasurement]:
     """The fixes moved in time so that the first is `lead_s` s ago (spacing kept)."""
     shift = int((time.time() - lead_s) * 1000) - fixes[0].timestamp
@@ -60,29 +87,7 @@ def test_cam_stations_get_their_cam_back_with_the_lane(
     try:
         bridge.start()
         for i, fix in enumerate(now_shifted(car[:8])):
-            cam = {
-                "message_type": "cam",
-                "source_uuid": "car_1",
-                "timestamp": fix.timestamp,
-                "version": "2.1.0-dev",
-                "message": {
-                    "protocol_version": 1,
-                    "station_id": 7,
-                    "generation_delta_time": i,
-                    "basic_container": {
-                        "station_type": 5,
-                        "reference_position": {
-                            "latitude": round(fix.latitude * 1e7),
-                            "longitude": round(fix.longitude * 1e7),
-                            "altitude": {"value": round(fix.altitude * 100)},
-                        },
-                    },
-                    "high_frequency_container": {
-                        "heading": round(fix.heading * 10) % 3600,
-                        "speed": round(fix.speed * 100),
-                    },
-                },
-            }
+            cam = cam_message(fix, i, "car_1", 7)
             station.publish("v2x/cam/car_1", json.dumps(cam).encode(), 1)
             time.sleep(0.05)
         assert wait_for(lambda: len(inbox) >= 8, 15), (len(inbox), bridge.pool.stats)
@@ -255,29 +260,7 @@ def test_laas_cam_serves_its_metrics_and_logs_json(
         assert wait_for(lambda: checks(base, "/readyz")[0] == 200, 15)
         assert checks(base, "/healthz")[0] == 200
         for i, fix in enumerate(now_shifted(car[:5])):
-            cam = {
-                "message_type": "cam",
-                "source_uuid": "car_9",
-                "timestamp": fix.timestamp,
-                "version": "2.1.0-dev",
-                "message": {
-                    "protocol_version": 1,
-                    "station_id": 9,
-                    "generation_delta_time": i,
-                    "basic_container": {
-                        "station_type": 5,
-                        "reference_position": {
-                            "latitude": round(fix.latitude * 1e7),
-                            "longitude": round(fix.longitude * 1e7),
-                            "altitude": {"value": round(fix.altitude * 100)},
-                        },
-                    },
-                    "high_frequency_container": {
-                        "heading": round(fix.heading * 10) % 3600,
-                        "speed": round(fix.speed * 100),
-                    },
-                },
-            }
+            cam = cam_message(fix, i, "car_9", 9)
             station.publish("v2x/cam/car_9", json.dumps(cam).encode(), 1)
             time.sleep(0.05)
         station.publish("v2x/cam/car_9", b"{not json", 1)

@@ -13,7 +13,15 @@ from typing import Any
 
 import pytest
 
-from ldm import ConfigError, ConnectError, Core, Participant, Provider, RequestTimeout
+from ldm import (
+    ConfigError,
+    ConnectError,
+    Core,
+    Participant,
+    Provider,
+    RequestTimeout,
+    ServiceNotFound,
+)
 from ldm.broker import EmbeddedBroker
 from ldm.brokers import free_port, wait_for
 from ldm.config import BrokerSettings, build
@@ -336,7 +344,13 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
         answered = [x for x in sent if x.future.exception() is None]
         refused = [x for x in sent if x.future.exception() is not None]
         kinds = sorted({type(x.future.exception()).__name__ for x in refused})
-        assert not any(isinstance(x.future.exception(), RequestTimeout) for x in refused), kinds
+        # Not settled (docs/brokers.md): when the user core briefly loses sight of the
+        # service, inputs in flight to it can be dropped as unroutable on the service side
+        # and time out. Without that window, none may time out: a broker that lost a
+        # QoS 1 input would show as a timeout in a run with no refusal.
+        timeouts = [x for x in refused if isinstance(x.future.exception(), RequestTimeout)]
+        window = [x for x in refused if isinstance(x.future.exception(), ServiceNotFound)]
+        assert not timeouts or window, kinds
         for item in answered:
             assert item.future.result() == {"echo": {"who": item.who, "i": item.i}}
         seen = {(r.payload["who"], r.payload["i"]) for r in d.echo.requests}

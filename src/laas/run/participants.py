@@ -114,10 +114,13 @@ def accounts(trace: Trace, prefix: str) -> dict[str, str]:
 
 @contextmanager
 def open_sessions(
-    logins: Mapping[str, Login], discovery_timeout: float, **participant_settings: Any
+    logins: Mapping[str, Login],
+    discovery_timeout: float,
+    where: Mapping[str, tuple[float, float]],
+    **participant_settings: Any,
 ) -> Iterator[dict[str, RoutedSession]]:
     """Start one participant per road user, wait for the service, route each (a session
-    with the worker whose region holds the user's fix, opened on first use);
+    with the worker whose region holds the user's first position `where`, opened now);
     the participants stop when the block ends."""
     participants = {
         u: Participant.create(settings, client_id=client_id, **participant_settings)
@@ -127,7 +130,10 @@ def open_sessions(
         for p in participants.values():
             p.start()
         wait_for_service(next(iter(participants.values())), discovery_timeout)
-        yield {u: RoutedSession(p, SERVICE_NAME) for u, p in participants.items()}
+        routed = {u: RoutedSession(p, SERVICE_NAME) for u, p in participants.items()}
+        for user, session in routed.items():  # opened now, not with the first fix
+            session.prepare(where[user])
+        yield routed
     finally:
         for p in participants.values():
             p.stop()
@@ -234,7 +240,10 @@ def run_participants(
             progress(i + 1, total)
 
     run = LiveRun(answers=[None] * total)
-    with open_sessions(logins, discovery_timeout, **participant_settings) as sessions:
+    first: dict[str, tuple[float, float]] = {}
+    for fix in trace.fixes:
+        first.setdefault(fix.user, (fix.measurement.longitude, fix.measurement.latitude))
+    with open_sessions(logins, discovery_timeout, first, **participant_settings) as sessions:
         sent = submit_on_time(
             sessions,
             sends,

@@ -144,14 +144,27 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _evaluate_suite(a: argparse.Namespace) -> int:
     import time
 
-    from laas.sim.suite import format_report, get_suite, run_suite, suite_plots, worst_run
+    from laas.sim.suite import (
+        format_report,
+        get_suite,
+        run_suite,
+        suite_plots,
+        summarize,
+        worst_run,
+    )
 
     suite = get_suite(a.suite)
     t0 = time.perf_counter()
     rows = run_suite(suite, workers=a.workers, progress=progress_printer("evaluate", "runs"))
     seconds = time.perf_counter() - t0
     if a.json:
-        print(json.dumps([r.as_dict() for r in rows], indent=1))
+        report = {
+            "suite": suite.name,
+            "seconds": seconds,
+            "summaries": [s.as_dict() for s in summarize(rows)],
+            "runs": [r.as_dict() for r in rows],
+        }
+        print(json.dumps(report, indent=1))
     else:
         print(format_report(suite, rows, seconds))
     if a.plot:

@@ -2,7 +2,14 @@
 
     RMSE_x = sqrt(mean (e_hat - e)^2),   RMSE_y = sqrt(mean (n_hat - n)^2),
     AED    = mean sqrt((e_hat - e)^2 + (n_hat - n)^2),
-    Acc.   = share of fixes whose (segment, lane) is the true one.
+    Acc.   = share of fixes whose answered lane holds the true position (by geometry:
+             `laas.sim.integrity.lane_holds`; the same physical lane wherever a map cuts
+             its road into elements); Acc. by id, beside it for one release, the share
+             whose (segment, lane) is the true one.
+
+Each answer's stated confidence is scored too (`laas.sim.integrity`): its lane probability
+against whether its lane was right, its accuracies across and along the road against its
+errors there.
 
 Errors are also split across and along the road (the true direction of travel), and
 before and after the common error became observable: the first time the orientations of
@@ -22,6 +29,7 @@ from laas.config import EngineConfig
 from laas.engine import Engine
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
+from laas.sim.integrity import IntegrityTally, lane_holds
 from laas.sim.scenario import Trace
 
 __all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "run_trace", "score"]
@@ -36,13 +44,20 @@ class RunResult:
     rmse_x: float
     rmse_y: float
     aed: float
-    accuracy: float
+    accuracy: float  # the answered lane holds the true position (geometry)
     cross: float  # mean |error| across the road
     along: float  # mean |error| along the road
     aed_before: float  # AED before the common error was observable (nan if never)
     aed_after: float  # AED after (nan if it never became observable)
     raw_aed: float  # AED of the raw fixes
     answered: int
+    accuracy_id: float  # the answered (segment, lane) is the true one
+    integrity: IntegrityTally  # stated confidence against the truth
+
+    @property
+    def worse_than_raw(self) -> bool:
+        """The corrected positions are, on average, further from the truth than the fixes."""
+        return self.aed > self.raw_aed
 
 
 def answer_trace(
@@ -72,6 +87,9 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
     err = np.full((n, 2), np.nan)
     raw = np.zeros(n)
     ok = np.zeros(n, dtype=bool)
+    ok_id = np.zeros(n, dtype=bool)
+    prob = np.zeros(n)
+    sigma = np.full((n, 2), np.nan)  # reported 1-sigma across, along
     tangent = np.zeros((n, 2))
     observable = np.zeros(n, dtype=bool)
     lo = hi = None
@@ -92,7 +110,14 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
             continue
         e, nn = proj.to_utm(answer.longitude, answer.latitude)
         err[i] = (e - fix.true_e, nn - fix.true_n)
-        ok[i] = answer.segment == fix.segment and answer.lane == fix.lane
+        ok_id[i] = answer.segment == fix.segment and answer.lane == fix.lane
+        ok[i] = ok_id[i] or (
+            answer.segment is not None
+            and answer.lane is not None
+            and lane_holds(hdmap, answer.segment, answer.lane, fix.true_e, fix.true_n)
+        )
+        prob[i] = answer.probability
+        sigma[i] = (answer.accuracy_cross, answer.accuracy_along)
     answered = ~np.isnan(err[:, 0])
     if not answered.any():
         raise ValueError("no fix of the trace was answered; nothing to score")
@@ -102,6 +127,13 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
     along = np.abs((e_ok * t_ok).sum(axis=1))
     cross = np.abs(e_ok[:, 0] * t_ok[:, 1] - e_ok[:, 1] * t_ok[:, 0])
     obs = observable[answered]
+    tally = IntegrityTally()
+    for p, right in zip(prob[answered], ok[answered], strict=True):
+        tally.add_answer(float(p), bool(right))
+    rated = ~np.isnan(sigma[answered, 0])
+    tally.add_errors(
+        cross[rated], along[rated], sigma[answered][rated, 0], sigma[answered][rated, 1]
+    )
     return RunResult(
         rmse_x=float(np.sqrt(np.mean(e_ok[:, 0] ** 2))),
         rmse_y=float(np.sqrt(np.mean(e_ok[:, 1] ** 2))),
@@ -113,4 +145,6 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
         aed_after=float(dist[obs].mean()) if obs.any() else math.nan,
         raw_aed=float(raw.mean()),
         answered=int(answered.sum()),
+        accuracy_id=float(ok_id.mean()),
+        integrity=tally,
     )

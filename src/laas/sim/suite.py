@@ -39,6 +39,7 @@ from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress
 from laas.sim.family import FAMILIES, MAP_FAMILIES, FamilyCase, build_case
+from laas.sim.integrity import Integrity, IntegrityTally
 from laas.sim.scenario import Trace, simulate_with
 from laas.sim.score import RunResult, answer_trace, score
 
@@ -212,7 +213,15 @@ class MethodScore:
     aed_after: float
     answered: int
     seconds: float
+    accuracy_id: float = math.nan  # by (segment, lane) id, beside the geometric score
+    raw_aed: float = math.nan
+    integrity: IntegrityTally = field(default_factory=IntegrityTally)
     error: str | None = None
+
+    @property
+    def worse_than_raw(self) -> bool:
+        """The corrected positions were further from the truth than the raw fixes."""
+        return self.aed > self.raw_aed
 
     @classmethod
     def of(cls, result: RunResult, seconds: float) -> MethodScore:
@@ -225,12 +234,15 @@ class MethodScore:
             result.aed_after,
             result.answered,
             seconds,
+            result.accuracy_id,
+            result.raw_aed,
+            result.integrity,
         )
 
     @classmethod
     def failed(cls, error: str, seconds: float) -> MethodScore:
         nan = math.nan
-        return cls(nan, nan, nan, nan, nan, nan, 0, seconds, error)
+        return cls(nan, nan, nan, nan, nan, nan, 0, seconds, error=error)
 
 
 @dataclass(frozen=True)
@@ -362,6 +374,9 @@ class Summary:
     ratio_runs: int  # runs where both were observable
     default_below_paper: int  # runs where default's accuracy < paper's - 0.05
     failures: int  # method runs that raised
+    accuracy_id_median: dict[str, float]  # lane accuracy by id, beside the geometric one
+    integrity: dict[str, Integrity]  # every answer of the group's runs, pooled
+    worse_than_raw: dict[str, int]  # runs whose AED is above the raw fixes'
 
     def as_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -399,6 +414,14 @@ def _summary(family: str, sigma_pos: float, rows: Sequence[SuiteRow]) -> Summary
         ratio_runs=len(ratios),
         default_below_paper=below,
         failures=sum(1 for r in rows for s in r.methods.values() if s.error is not None),
+        accuracy_id_median={m: _stat(col(m, "accuracy_id"), np.median) for m in METHODS},
+        integrity={
+            m: IntegrityTally.total(r.methods[m].integrity for r in rows).summary() for m in METHODS
+        },
+        worse_than_raw={
+            m: sum(1 for r in rows if r.methods[m].error is None and r.methods[m].worse_than_raw)
+            for m in METHODS
+        },
     )
 
 
@@ -451,6 +474,38 @@ def _by_users(rows: Sequence[SuiteRow]) -> list[str]:
                 f"{np.nanmin(acc):.2f}; oracle median {oracle:.3f}; default below paper "
                 f"by > 0.05: {below}"
             )
+        mine = [r for r in rows if r.sigma_pos == sp and r.users >= 3]
+        if mine:
+            acc = np.array([r.methods["default"].accuracy for r in mine])
+            lines.append(
+                f"  s_pos {sp:g} users 3+    runs {len(mine):>3}: default "
+                f"{np.nanmedian(acc):.3f} / {np.nanpercentile(acc, 10):.2f} / {np.nanmin(acc):.2f}"
+            )
+    lines.append("")
+    return lines
+
+
+def _integrity(rows: Sequence[SuiteRow]) -> list[str]:
+    """Whether the stated confidence holds: per family and sigma_pos, pooled over runs."""
+    lines = [
+        "integrity (every answer pooled): ECE; share of all answers that said p >= 0.9 and "
+        "were wrong (>= 0.99); share that said >= 0.9; errors within 1 / 2 sigma across and "
+        "along (honest: 0.68 / 0.95); runs with AED above the raw fixes'",
+    ]
+    for s in summarize(rows):
+        for m in ("default", "oracle") if s.family == "all" else ("default",):
+            g = s.integrity[m]
+            lines.append(
+                f"  {s.family:<9}{s.sigma_pos:>4.1f} {m:<8} ECE {g.ece:.3f}  wrong>=.9 "
+                f"{g.wrong_90:6.2%} (>=.99 {g.wrong_99:6.2%})  said>=.9 {g.said_90:4.0%}  "
+                f"cross {g.cross_1:.2f}/{g.cross_2:.2f}  along {g.along_1:.2f}/{g.along_2:.2f}  "
+                f"worse than raw {s.worse_than_raw[m]}/{s.runs}"
+            )
+        if s.family == "all":
+            lines.append(
+                f"  reliability of default mode's lane probability, s_pos {s.sigma_pos:g}:"
+            )
+            lines.extend("    " + line for line in s.integrity["default"].reliability().split("\n"))
     lines.append("")
     return lines
 
@@ -467,7 +522,7 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
         head += f", {seconds:.0f} s"
     cols = (
         f"{'family':<9}{'s_pos':>5}{'runs':>5}  {'method':<8}{'acc med':>8}{'p10':>6}"
-        f"{'worst':>6}{'AED med':>8}{'AED>obs':>8}{'s/run':>7}"
+        f"{'worst':>6}{'id med':>7}{'AED med':>8}{'AED>obs':>8}{'s/run':>7}"
     )
     lines = [head, "", cols, "-" * len(cols)]
     for s in summarize(rows):
@@ -477,7 +532,7 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
             lead = f"{s.family:<9}{s.sigma_pos:>5.1f}{s.runs:>5}" if k == 0 else " " * 19
             lines.append(
                 f"{lead}  {m:<8}{s.accuracy_median[m]:>8.3f}{s.accuracy_p10[m]:>6.2f}"
-                f"{s.accuracy_worst[m]:>6.2f}{s.aed_median[m]:>8.2f}"
+                f"{s.accuracy_worst[m]:>6.2f}{s.accuracy_id_median[m]:>7.3f}{s.aed_median[m]:>8.2f}"
                 f"{s.aed_after_median[m]:>8.2f}{secs:>7.1f}"
             )
         lines.append(
@@ -489,6 +544,7 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
         if s.family == "all":
             lines.append("")
     lines.extend(_by_users(rows))
+    lines.extend(_integrity(rows))
     worst = worst_run(rows)
     lines.append(
         f"worst run (default mode): {worst.family} seed {worst.seed} at sigma_pos "
@@ -504,7 +560,8 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
                     f"FAILED: {r.family} seed {r.seed} sigma_pos {r.sigma_pos:g} {name}: {sc.error}"
                 )
     lines.append(
-        "(acc: lane accuracy, p10 its 10th percentile; AED>obs: AED once the common error "
-        "is observable; s/run: mean seconds per run of the method, one core)"
+        "(acc: lane accuracy by geometry (the answered lane holds the true position), p10 its "
+        "10th percentile; id med: the median by (segment, lane) id; AED>obs: AED once the "
+        "common error is observable; s/run: mean seconds per run of the method, one core)"
     )
     return "\n".join(lines)

@@ -1,0 +1,164 @@
+"""Integrity: whether an answer's stated confidence holds against the truth.
+
+An answer is used to decide things, so its lane probability and its accuracies are scored
+like its position. Per run, counts that add up over runs (so a suite pools its answers):
+
+- **reliability**: the answers binned by their lane probability p (`BINS` bins of width
+  0.1); per bin the count, the sum of p and the number right. The expected calibration
+  error is  ECE = sum_b (n_b / N) |mean p_b - right_b / n_b|;
+- **confident and wrong** (hazardously misleading information): answers that say
+  p >= 0.9 (and p >= 0.99) and whose lane is wrong, as a share of all answers;
+- **consistency of the accuracies**: the share of answers whose error across the road is
+  within once and twice the reported ``accuracy_cross`` (and along the road,
+  ``accuracy_along``). For an honest Gaussian 1-sigma these are 68 % and 95 %.
+
+A lane is right by geometry (`lane_holds`): the true position lies inside the answered
+lane, its centre line +- half its width, at that place. So the same physical lane counts
+wherever a map cuts its road into elements.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from laas.map.hdmap import HdMap
+
+__all__ = [
+    "BINS",
+    "END_TOLERANCE",
+    "Integrity",
+    "IntegrityTally",
+    "lane_holds",
+]
+
+BINS = 10
+"""Reliability bins of the lane probability, each 0.1 wide."""
+
+END_TOLERANCE = 1.0
+"""m: a true position this far past either end of the answered element still counts as in
+it (elements meet end to end; the true position of a user on the seam may lie on either)."""
+
+
+def lane_holds(hdmap: HdMap, segment: str, lane: int, x: float, y: float) -> bool:
+    """True if (x, y) lies inside lane `lane` of `segment`: |d - o_l(s)| <= w_l / 2 at the
+    station s of the point, within `END_TOLERANCE` of the element's ends."""
+    seg = hdmap.segments.get(segment)
+    if seg is None or not 0 <= lane < len(seg.lanes):
+        return False
+    s, d = seg.frame(x, y)
+    if not -END_TOLERANCE <= s <= seg.length + END_TOLERANCE:
+        return False
+    centre = float(seg.lane_offsets(s)[lane])
+    return abs(d - centre) <= seg.lanes[lane].width / 2.0
+
+
+@dataclass
+class IntegrityTally:
+    """Counts of one run (or many, added up): see the module docstring."""
+
+    answers: int = 0  # answers with a lane probability (placed on a lane or not)
+    count: list[int] = field(default_factory=lambda: [0] * BINS)
+    prob: list[float] = field(default_factory=lambda: [0.0] * BINS)
+    right: list[int] = field(default_factory=lambda: [0] * BINS)
+    wrong_90: int = 0  # said p >= 0.9 and wrong
+    wrong_99: int = 0  # said p >= 0.99 and wrong
+    said_90: int = 0  # said p >= 0.9
+    sigma: int = 0  # answers with both accuracies
+    cross_1: int = 0  # |error across| <= accuracy_cross
+    cross_2: int = 0  # <= 2 accuracy_cross
+    along_1: int = 0
+    along_2: int = 0
+
+    def add_answer(self, probability: float, right: bool) -> None:
+        """One answer's lane probability and whether its lane was right."""
+        k = min(int(probability * BINS), BINS - 1)
+        self.answers += 1
+        self.count[k] += 1
+        self.prob[k] += probability
+        self.right[k] += int(right)
+        if probability >= 0.9:
+            self.said_90 += 1
+            self.wrong_90 += int(not right)
+            self.wrong_99 += int(probability >= 0.99 and not right)
+
+    def add_errors(
+        self, cross: np.ndarray, along: np.ndarray, sigma_cross: np.ndarray, sigma_along: np.ndarray
+    ) -> None:
+        """|errors| across and along the road against their reported 1-sigma."""
+        self.sigma += int(cross.size)
+        self.cross_1 += int(np.sum(cross <= sigma_cross))
+        self.cross_2 += int(np.sum(cross <= 2.0 * sigma_cross))
+        self.along_1 += int(np.sum(along <= sigma_along))
+        self.along_2 += int(np.sum(along <= 2.0 * sigma_along))
+
+    def __add__(self, other: IntegrityTally) -> IntegrityTally:
+        out = IntegrityTally()
+        for name, mine in asdict(self).items():
+            theirs = getattr(other, name)
+            if isinstance(mine, list):
+                setattr(out, name, [a + b for a, b in zip(mine, theirs, strict=True)])
+            else:
+                setattr(out, name, mine + theirs)
+        return out
+
+    @classmethod
+    def total(cls, tallies: Iterable[IntegrityTally]) -> IntegrityTally:
+        out = cls()
+        for t in tallies:
+            out = out + t
+        return out
+
+    def summary(self) -> Integrity:
+        """The figures of these counts."""
+        n = max(self.answers, 1)
+        ece = sum(
+            abs(p - r) for p, r in zip(self.prob, self.right, strict=True)
+        )  # sum_b n_b |mean p_b - acc_b| = sum_b |sum p - right|
+        s = max(self.sigma, 1)
+        return Integrity(
+            answers=self.answers,
+            ece=ece / n if self.answers else math.nan,
+            wrong_90=self.wrong_90 / n if self.answers else math.nan,
+            wrong_99=self.wrong_99 / n if self.answers else math.nan,
+            said_90=self.said_90 / n if self.answers else math.nan,
+            said=[p / c if c else math.nan for p, c in zip(self.prob, self.count, strict=True)],
+            right=[r / c if c else math.nan for r, c in zip(self.right, self.count, strict=True)],
+            count=list(self.count),
+            cross_1=self.cross_1 / s if self.sigma else math.nan,
+            cross_2=self.cross_2 / s if self.sigma else math.nan,
+            along_1=self.along_1 / s if self.sigma else math.nan,
+            along_2=self.along_2 / s if self.sigma else math.nan,
+        )
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """The integrity figures of a tally (shares of all answers; nan where none)."""
+
+    answers: int
+    ece: float  # expected calibration error of the lane probability
+    wrong_90: float  # share of answers that said >= 0.9 and were wrong
+    wrong_99: float  # ... >= 0.99 and wrong
+    said_90: float  # share of answers that said >= 0.9
+    said: list[float]  # per bin: mean stated probability
+    right: list[float]  # per bin: share right
+    count: list[int]  # per bin: answers
+    cross_1: float  # share of errors across the road within 1 accuracy_cross
+    cross_2: float  # within 2
+    along_1: float
+    along_2: float
+
+    def as_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+    def reliability(self) -> str:
+        """The reliability table as two lines: the mean said and the share right per bin."""
+        cells = [(s, r, c) for s, r, c in zip(self.said, self.right, self.count, strict=True) if c]
+        said = " ".join(f"{s:5.2f}" for s, _, _ in cells)
+        right = " ".join(f"{r:5.2f}" for _, r, _ in cells)
+        count = " ".join(f"{c:5d}" if c < 100_000 else f"{c / 1000:4.0f}k" for _, _, c in cells)
+        return f"said  {said}\nright {right}\nn     {count}"

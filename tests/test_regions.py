@@ -225,3 +225,38 @@ def test_a_worker_node_serves_the_map_as_regions_in_processes(tmp_path: Path) ->
             node.kill()
         watcher.stop()
         broker.stop()
+
+
+def test_a_missing_regional_worker_fails_only_the_fixes_of_its_region(
+    hamburg_map: HdMap, tmp_path: Path
+) -> None:
+    """With the worker of region 2 gone, the simulator goes on: the fixes in region 1
+    are answered, those in region 2 only are reported, and `laas simulate --out` writes
+    the answers it got."""
+    from laas.cli import main
+
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    with LocalDeployment(hamburg_map, CONFIG, brokers="embedded", regions=2) as deployment:
+        deployment.workers[1][0].stop()  # laas-2of2 withdraws its announcement
+        live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
+        out = tmp_path / "answers.jsonl"
+        trust = ["--service-key", deployment.trust["service_keys"]["laas"]]
+        trust += ["--core-key", deployment.trust["core_key"]]
+        args = ["simulate", "--cluster", deployment.user_url, "--speedup", "20"]
+        code = main([*args, "--out", str(out), *trust])
+    first = deployment.regions[0]
+    assert first is not None
+    inside = [
+        covers(
+            ServiceDescription(**service_spec(first).model_dump(), public_key="A" * 43 + "="),
+            (f.measurement.longitude, f.measurement.latitude),
+        )
+        for f in trace.fixes
+    ]
+    assert 0 < live.answered < len(trace.fixes)
+    assert all(inside[i] for i, a in enumerate(live.answers) if a is not None)
+    assert len(live.errors) == len(trace.fixes) - live.answered
+    assert any("no provider of 'laas' covers" in e for e in live.errors)
+    assert code == 0
+    assert 0 < len(out.read_text().splitlines()) < len(trace.fixes)

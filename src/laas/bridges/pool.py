@@ -6,6 +6,11 @@ its own `ldm.Participant` (its own MQTT connection and client id, so its own ses
 pseudonyms and keys at the user core) the first time it is heard of, and forgets it,
 closing the participant, once it has been silent for `track_timeout` seconds.
 
+A device finds the service as every laas client does (`laas.discovery`): the worker
+named `laas`, or the regional workers of the `laas` family. Each fix goes to the worker
+whose region holds it (`ldm.RoutedSession`), so a device that drives across a border is
+handed over to the next worker.
+
 Threads: `submit`, `malformed` and `expire` may be called from any one thread (the
 bridge's). Sessions are opened on a small thread pool, so a device whose session is
 slow to open never holds up another. Answers are handed to the bridge's callback on
@@ -29,10 +34,11 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from laas.discovery import wait_for_service
 from laas.errors import LaasError
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.service import SERVICE_NAME
-from ldm import BrokerSettings, Participant, Session
+from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound
 from ldm.topics import NAME_PATTERN
 
 __all__ = [
@@ -152,7 +158,8 @@ class _Device:
     name: str
     last_seen: float
     opened_at: float
-    session: Future[Session] = field(default_factory=Future)
+    where: tuple[float, float]  # (longitude, latitude) of its first fix: its first worker
+    session: Future[RoutedSession] = field(default_factory=Future)
     participant: Participant | None = None
 
 
@@ -201,14 +208,15 @@ class DevicePool:
                         len(self._devices),
                     )
                     return
-                device = _Device(name, now, now)
+                device = _Device(name, now, now, (fix.longitude, fix.latitude))
                 self._devices[name] = device
                 self.stats.devices = len(self._devices)
                 self._executor.submit(self._open, device)
             device.last_seen = now
             self.stats.fixes += 1
         payload = fix.model_dump(exclude_none=True)
-        device.session.add_done_callback(lambda f: self._send(device, f, payload, on_answer))
+        where = (fix.longitude, fix.latitude)
+        device.session.add_done_callback(lambda f: self._send(device, f, payload, where, on_answer))
 
     def malformed(self, name: str, problem: str) -> None:
         """Count a message of device `name` that was not a fix, and log it (rate-limited)."""
@@ -292,8 +300,9 @@ class DevicePool:
             )
             device.participant = participant
             participant.start(timeout=c.open_timeout)
-            self._wait_for_service(participant)
-            session = participant.open(self.service, timeout=c.open_timeout)
+            wait_for_service(participant, c.open_timeout, self.service)
+            session = RoutedSession(participant, self.service, timeout=c.open_timeout)
+            session.prepare(device.where)  # opened now, with the worker of its first fix
         except Exception as exc:  # any failure fails this device only
             if device.participant is not None:
                 device.participant.stop()
@@ -307,20 +316,13 @@ class DevicePool:
             return
         self.stats.opened += 1
 
-    def _wait_for_service(self, participant: Participant) -> None:
-        deadline = time.monotonic() + self.config.open_timeout
-        while time.monotonic() < deadline:
-            if any(s.name == self.service for s in participant.services(timeout=0.5)):
-                return
-            time.sleep(0.1)
-        raise TimeoutError(
-            f"the {self.service!r} service did not appear in the cluster's service list "
-            f"within {self.config.open_timeout:g} s; is `laas worker` running and its cores "
-            "connected?"
-        )
-
     def _send(
-        self, device: _Device, opened: Future[Session], payload: dict[str, Any], on: OnAnswer
+        self,
+        device: _Device,
+        opened: Future[RoutedSession],
+        payload: dict[str, Any],
+        where: tuple[float, float],
+        on: OnAnswer,
     ) -> None:
         error = CancelledError() if opened.cancelled() else opened.exception()
         if error is not None:
@@ -333,7 +335,23 @@ class DevicePool:
                 error,
             )
             return
-        reply = opened.result().submit(payload)
+        try:  # to the worker whose region holds the fix (a hand-over opens a session)
+            reply = opened.result().submit(payload, where)
+        except ServiceNotFound:  # its message holds the position: not logged
+            self.stats.lost += 1
+            self.limiter.warn(
+                f"{device.name}|route",
+                "device %s: a fix was not sent: no worker of %r covers its position",
+                device.name,
+                self.service,
+            )
+            return
+        except Exception as exc:  # the hand-over's new session failed
+            self.stats.lost += 1
+            self.limiter.warn(
+                f"{device.name}|route", "device %s: a fix was not sent: %s", device.name, exc
+            )
+            return
         reply.add_done_callback(lambda r: self._reply(device, r, on))
 
     def _reply(self, device: _Device, reply: Future[dict[str, Any]], on: OnAnswer) -> None:

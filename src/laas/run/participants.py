@@ -6,6 +6,9 @@ publishes its fixes at their times divided by `speedup`. The fixes' timestamps a
 shifted to the wall clock at the start (their spacing is kept), so ages and clocks
 stay meaningful. Replies are collected per fix, in trace order.
 
+A road user whose region has no worker (a regional worker missing) is not answered, and
+only it: its fixes are reported as errors, every other user runs on.
+
 `run_participants` does all of that in this process. Its parts serve `laas bench` too,
 whose participant processes each drive a share of the users: `open_sessions` (connect
 and discover), `submit_on_time` (the sending loop) and `collect_replies`.
@@ -18,16 +21,17 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from typing import Any
 
 from pydantic import ValidationError
 
+from laas.discovery import wait_for_service
 from laas.models import CorrectedPosition, ErrorReply, read_reply
 from laas.service import SERVICE_NAME
 from laas.sim.scenario import Trace
-from ldm import BrokerSettings, Participant, RoutedSession, Session
+from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound, Session
 
 __all__ = [
     "LiveRun",
@@ -93,20 +97,6 @@ class Reply:
     lost: bool = False  # no reply at all (a timeout, or the session gave it up)
 
 
-def wait_for_service(participant: Participant, timeout: float) -> None:
-    """Wait until the cluster's service list names the laas service; TimeoutError if not."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        services = participant.services(timeout=0.5)
-        if any(SERVICE_NAME in (s.name, s.family) for s in services):
-            return
-        time.sleep(0.1)
-    raise TimeoutError(
-        f"no {SERVICE_NAME!r} service appeared in the cluster's service list within "
-        f"{timeout:.0f} s; is `laas worker` running and its cores connected?"
-    )
-
-
 def accounts(trace: Trace, prefix: str) -> dict[str, str]:
     """Road user -> the account (and MQTT client id) it connects with: prefix + user."""
     return {u: f"{prefix}{u}" for u in sorted({f.user for f in trace.fixes})}
@@ -120,8 +110,9 @@ def open_sessions(
     **participant_settings: Any,
 ) -> Iterator[dict[str, RoutedSession]]:
     """Start one participant per road user, wait for the service, route each (a session
-    with the worker whose region holds the user's first position `where`, opened now);
-    the participants stop when the block ends."""
+    with the worker whose region holds the user's first position `where`, opened now;
+    where no worker serves, at its first fix that one does); the participants stop when
+    the block ends."""
     participants = {
         u: Participant.create(settings, client_id=client_id, **participant_settings)
         for u, (settings, client_id) in logins.items()
@@ -132,7 +123,8 @@ def open_sessions(
         wait_for_service(next(iter(participants.values())), discovery_timeout)
         routed = {u: RoutedSession(p, SERVICE_NAME) for u, p in participants.items()}
         for user, session in routed.items():  # opened now, not with the first fix
-            session.prepare(where[user])
+            with suppress(ServiceNotFound):  # its region's worker is missing: its fixes fail
+                session.prepare(where[user])
         yield routed
     finally:
         for p in participants.values():
@@ -165,10 +157,14 @@ def submit_on_time(
         payload = dict(measurement, timestamp=timestamp + shift)
         sent = time.perf_counter()
         session = sessions[user]
-        if isinstance(session, RoutedSession):  # to the worker of the fix's region
-            future = session.submit(payload, (payload["longitude"], payload["latitude"]))
-        else:
-            future = session.submit(payload)
+        try:
+            if isinstance(session, RoutedSession):  # to the worker of the fix's region
+                future = session.submit(payload, (payload["longitude"], payload["latitude"]))
+            else:
+                future = session.submit(payload)
+        except ServiceNotFound as exc:  # no worker serves the fix's region: this fix fails
+            future = Future()
+            future.set_exception(exc)
         request = Request(i, sent, future)
         request.future.add_done_callback(request.stamp)
         requests.append(request)

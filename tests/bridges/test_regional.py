@@ -1,0 +1,61 @@
+"""A bridge in front of regional workers: each device's fixes go to the worker of their
+region (`laas.discovery`, `ldm.RoutedSession`), across the border and back."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+
+import pytest
+
+from laas.bridges.owntracks import OwnTracksBridge
+from laas.bridges.pool import DevicePool, PoolConfig
+from laas.map.hdmap import HdMap
+from laas.run.deployment import LocalDeployment
+from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
+from ldm import BrokerSettings
+
+from .test_live import client, now_shifted
+from .test_owntracks_acl import owntracks_location
+
+
+def _wait(done: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.mark.timeout(120)
+def test_owntracks_phones_are_answered_by_two_regional_workers(hamburg_map: HdMap) -> None:
+    """Three phones (the Hamburg road users, who all cross the border between the two
+    regions) through `laas owntracks`: every fix is answered, and both workers answer."""
+    trace = simulate(hamburg_map, hamburg_scenario(), ErrorModel(), 0)
+    users = sorted({f.user for f in trace.fixes})
+    fixes = {u: now_shifted([f.measurement for f in trace.fixes if f.user == u]) for u in users}
+    with LocalDeployment(hamburg_map, brokers="embedded", regions=2) as deployment:
+        assert [p.name for p, _ in deployment.workers] == ["laas-1of2", "laas-2of2"]
+        pool = DevicePool(
+            PoolConfig(cluster=BrokerSettings(url=deployment.user_url), **deployment.trust)
+        )
+        phones, inbox = client(deployment.user_url, "regional-phones", "owntracks/+/+")
+        with OwnTracksBridge(BrokerSettings(url=deployment.user_url), pool):
+            for i in range(len(fixes[users[0]])):
+                for u in users:
+                    location = owntracks_location(fixes[u][i], fixes[u][i].timestamp // 1000)
+                    phones.publish(f"owntracks/{u}/phone", json.dumps(location).encode(), 1, False)
+                time.sleep(0.05)
+            total = sum(len(f) for f in fixes.values())
+            assert _wait(
+                lambda: pool.stats.answered + pool.stats.lost + pool.stats.refused >= total, 30
+            )
+            answers = lambda: [m for m in inbox if m.topic.endswith("-lane")]  # noqa: E731
+            assert _wait(lambda: len(answers()) >= total, 10), len(answers())
+            shares = [service.stats.answered for _, service in deployment.workers]
+            stats = pool.stats
+        phones.stop()
+    assert (stats.answered, stats.refused, stats.lost) == (total, 0, 0), stats
+    assert sum(shares) == total and min(shares) > 0, shares

@@ -16,11 +16,19 @@ import json
 import logging
 import math
 
+import pyproj
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from laas.bridges.cam import answer_cam, cam_fix, etsi_lane_position, read_cam
+from laas.bridges.cam import (
+    answer_cam,
+    cam_fix,
+    confidence_ellipse,
+    etsi_lane_position,
+    keeps_left,
+    read_cam,
+)
 from laas.bridges.gpsd import parse_address, tpv_fix
 from laas.bridges.nmea import KNOT, nmea_fixes, nmea_sentences
 from laas.bridges.owntracks import (
@@ -34,6 +42,8 @@ from laas.bridges.owntracks import (
 )
 from laas.bridges.pool import LogLimiter, Malformed, device_name
 from laas.errors import ConfigError
+from laas.map.hdmap import HdMap
+from laas.map.mapgen import LaneSpec
 from laas.models import CorrectedPosition, GpsMeasurement
 
 from ..helpers import Clock, small_map
@@ -309,3 +319,68 @@ def test_etsi_lane_positions_count_driving_lanes_from_the_middle() -> None:
     assert out["message"]["high_frequency_container"]["lane_position"] == 1
     ellipse = out["message"]["basic_container"]["reference_position"]["position_confidence_ellipse"]
     assert ellipse["semi_major_confidence"] == round(1.0 / math.sqrt(2) * 2.4477 * 100)
+
+
+def _answer_on(hdmap: HdMap, lane: int, s: float = 60.0, **fields: float) -> CorrectedPosition:
+    """An answer at station `s` on `lane` of the map's first segment."""
+    seg = hdmap.segments[sorted(hdmap.segments)[0]]
+    x, y = seg.point(s, float(seg.lane_offsets(s)[lane]))
+    lon, lat = hdmap.projection.to_wgs84(x, y)
+    values = {"accuracy": 1.0, "accuracy_cross": 0.5, "accuracy_along": 0.8, **fields}
+    return CorrectedPosition(
+        timestamp=0,
+        latitude=lat,
+        longitude=lon,
+        segment=seg.id,
+        lane=lane,
+        lane_type=seg.lanes[lane].type,
+        probability=1.0,
+        **values,
+    )
+
+
+def test_etsi_lane_positions_on_a_left_hand_road_count_from_its_middle() -> None:
+    """A left-hand 2 + 2 road (forward lanes on the left, as in Sydney): the middle lies
+    between lanes 1 and 2, so lanes 1 and 2 are innermost (1) and 0 and 3 second (2)."""
+    two = (LaneSpec("driving", 3.0, "forward"), LaneSpec("driving", 3.0, "forward"))
+    back = (LaneSpec("driving", 3.0, "backward"), LaneSpec("driving", 3.0, "backward"))
+    left_hand = small_map(lanes=(LaneSpec("sidewalk", 2.0, "both"), *two, *back))
+    assert keeps_left(left_hand) and not keeps_left(small_map())
+    numbers = [etsi_lane_position(left_hand, _answer_on(left_hand, k)) for k in range(5)]
+    assert numbers == [-1, 2, 1, 1, 2]
+    right_hand = small_map(lanes=(*back, *two))
+    assert [etsi_lane_position(right_hand, _answer_on(right_hand, k)) for k in range(4)] == [
+        2,
+        1,
+        1,
+        2,
+    ]
+    # a one-way road: the middle is on the driver's left in right-hand traffic, right in left
+    one_way = small_map(lanes=two)
+    assert [etsi_lane_position(one_way, _answer_on(one_way, k), False) for k in (0, 1)] == [1, 2]
+    assert [etsi_lane_position(one_way, _answer_on(one_way, k), True) for k in (0, 1)] == [2, 1]
+
+
+def test_the_cam_confidence_ellipse_lies_along_the_road_with_both_accuracies() -> None:
+    """0.25 m across and 10 m along the road: a 95 % ellipse of 0.61 m by 24.48 m whose
+    major axis points along the road (true north bearing, from the WGS84 ellipsoid)."""
+    hdmap = small_map()  # its first segment heads 100 degrees (grid)
+    answer = _answer_on(hdmap, 2, accuracy=10.0, accuracy_cross=0.25, accuracy_along=10.0)
+    ellipse = confidence_ellipse(hdmap, answer)
+    assert ellipse.semi_major_confidence == round(10.0 * 2.4477 * 100)
+    assert ellipse.semi_minor_confidence == round(0.25 * 2.4477 * 100)
+    seg = hdmap.segments[answer.segment or ""]
+    a = hdmap.projection.to_wgs84(*seg.point(50.0))
+    b = hdmap.projection.to_wgs84(*seg.point(70.0))
+    bearing = pyproj.Geod(ellps="WGS84").inv(a[0], a[1], b[0], b[1])[0] % 360.0
+    assert ellipse.semi_major_orientation / 10.0 == pytest.approx(bearing, abs=0.15)
+    out = answer_cam(cam(), answer, 1, ellipse)
+    ref = out["message"]["basic_container"]["reference_position"]
+    assert ref["position_confidence_ellipse"] == ellipse.model_dump()
+    # wider across than along: the major axis lies across the road
+    across = _answer_on(hdmap, 2, accuracy_cross=3.0, accuracy_along=1.0)
+    turned = confidence_ellipse(hdmap, across)
+    assert turned.semi_major_confidence == round(3.0 * 244.77)
+    assert (turned.semi_major_orientation / 10.0 - bearing) % 180.0 == pytest.approx(90.0, abs=0.15)
+    off = confidence_ellipse(hdmap, across.model_copy(update={"segment": None, "lane": None}))
+    assert off.semi_major_confidence == off.semi_minor_confidence == round(244.77 / math.sqrt(2))

@@ -16,13 +16,28 @@ https://github.com/Orange-OpenSource/its-client): ``message_type: "cam"``,
         accuracy   = hypot(sigma_major, sigma_minor)   (a 1-sigma radius)
         (4094 out of range, 4095 unavailable: no accuracy)
 
-The answer is the station's CAM again with the corrected ``reference_position``, a
-circular ``position_confidence_ellipse`` from the answer's accuracy and
-``lane_position`` filled as ETSI counts lanes: innermostDrivingLane(1),
-secondLaneFromInside(2), ... among the driving lanes of the station's direction, from
-the middle of the road; offTheRoad(-1) off the map or on a sidewalk. On a bicycle or
-parking lane ETSI has no number, so ``lane_position`` is left out. The station type
-is a hint: road-side units (15) are not road users and are not positioned.
+The answer is the station's CAM again with the corrected ``reference_position``, its
+``position_confidence_ellipse`` and ``lane_position``:
+
+- the ellipse (`confidence_ellipse`) has the answer's two accuracies as its axes, along
+  the road and across it, turned to the road's heading at the answer (true north,
+  clockwise, 0.1 degree; the major axis is the along-road one unless the cross-road
+  accuracy is the larger):
+
+      semi_along = accuracy_along * 2.4477,  semi_cross = accuracy_cross * 2.4477  (95 %, m)
+      orientation = road heading (grid) + meridian convergence  (of the major axis)
+
+  off the map, a circle of radius accuracy / sqrt(2) * 2.4477, orientation 0;
+- ``lane_position`` as ETSI counts lanes: innermostDrivingLane(1),
+  secondLaneFromInside(2), ... among the driving lanes of the station's direction,
+  from the middle of the road; offTheRoad(-1) off the map or on a sidewalk. On a
+  bicycle or parking lane ETSI has no number, so ``lane_position`` is left out. The
+  middle of a two-way road lies between its two directions; on a one-way road, on the
+  driver's left in right-hand traffic and on the right in left-hand traffic, which the
+  map's two-way roads tell (`keeps_left`).
+
+The station type is a hint: road-side units (15) are not road users and are not
+positioned.
 """
 
 from __future__ import annotations
@@ -48,7 +63,9 @@ __all__ = [
     "CamConfig",
     "answer_cam",
     "cam_fix",
+    "confidence_ellipse",
     "etsi_lane_position",
+    "keeps_left",
     "read_cam",
 ]
 
@@ -162,10 +179,30 @@ def cam_fix(cam: Cam) -> GpsMeasurement | None:
     )
 
 
-def etsi_lane_position(hdmap: HdMap, answer: CorrectedPosition) -> int | None:
+def keeps_left(hdmap: HdMap) -> bool:
+    """Whether the map's traffic keeps left: on most of its two-way segments, the forward
+    driving lanes lie left of the backward ones (lanes count left to right along the
+    segment). A map without two-way segments keeps right."""
+    left = right = 0
+    for segment in hdmap.segments.values():
+        driving = [x for x in segment.lanes if x.type == "driving"]
+        forward = [x.index for x in driving if x.direction == "forward"]
+        backward = [x.index for x in driving if x.direction == "backward"]
+        if forward and backward:
+            if max(forward) < min(backward):
+                left += 1
+            elif max(backward) < min(forward):
+                right += 1
+    return left > right
+
+
+def etsi_lane_position(
+    hdmap: HdMap, answer: CorrectedPosition, keep_left: bool | None = None
+) -> int | None:
     """ETSI's LanePosition of an answer: driving lanes of the same direction counted from
     the middle of the road (1 = innermost); -1 off the map or on a sidewalk; None on a
-    lane ETSI does not number (bicycle, parking)."""
+    lane ETSI does not number (bicycle, parking). `keep_left`: the map's traffic side
+    (None: `keeps_left`, which a caller with many answers computes once)."""
     if answer.segment is None or answer.lane is None or answer.segment not in hdmap.segments:
         return OFF_THE_ROAD
     lanes = hdmap.segments[answer.segment].lanes
@@ -176,33 +213,73 @@ def etsi_lane_position(hdmap: HdMap, answer: CorrectedPosition) -> int | None:
         return OFF_THE_ROAD
     if lane.type != "driving":
         return None
-    # Lanes are numbered left to right looking along the segment; the middle of the road
-    # is left of forward lanes and right of backward ones.
-    if lane.direction == "backward":
-        same = [x for x in lanes if x.type == "driving" and x.direction != "forward"]
-        inner_first = sorted(same, key=lambda x: -x.index)
+    # Lanes are numbered left to right looking along the segment. The middle of a two-way
+    # road lies towards the other direction's lanes; of a one-way road, on the driver's
+    # left in right-hand traffic (lower indices for forward lanes, whose drivers look
+    # along the segment; higher for backward ones) and on the right in left-hand traffic.
+    backward = lane.direction == "backward"
+    other = "forward" if backward else "backward"
+    driving = [x for x in lanes if x.type == "driving"]
+    same = [x for x in driving if x.direction != other]
+    opposite = [x.index for x in driving if x.direction == other]
+    if opposite:
+        middle_low = sum(opposite) / len(opposite) < lane.index
     else:
-        same = [x for x in lanes if x.type == "driving" and x.direction != "backward"]
-        inner_first = sorted(same, key=lambda x: x.index)
+        if keep_left is None:
+            keep_left = keeps_left(hdmap)
+        middle_low = backward == keep_left
+    inner_first = sorted(same, key=lambda x: x.index if middle_low else -x.index)
     position = 1 + [x.index for x in inner_first].index(lane.index)
     return min(position, 13)
 
 
+def _axis_cm(sigma: float) -> int:
+    """A 95 % semi axis in cm from a 1-sigma error in m; 4094 (outOfRange) past 40.93 m."""
+    cm = round(sigma * CHI2_95 * 100.0)
+    return 4094 if cm > 4093 else max(cm, 1)
+
+
+def confidence_ellipse(hdmap: HdMap, answer: CorrectedPosition) -> ConfidenceEllipse:
+    """The answer's 95 % confidence ellipse (the module docstring): its along-road and
+    cross-road axes, turned to the road's heading; a circle off the map."""
+    segment = hdmap.segments.get(answer.segment) if answer.segment is not None else None
+    if segment is None:
+        axis = _axis_cm(answer.accuracy / math.sqrt(2.0))
+        return ConfidenceEllipse(
+            semi_major_confidence=axis, semi_minor_confidence=axis, semi_major_orientation=0
+        )
+    x, y = hdmap.projection.to_utm(answer.longitude, answer.latitude)
+    s, _d = segment.frame(x, y)
+    heading = segment.heading(s) + hdmap.projection.convergence(answer.longitude, answer.latitude)
+    along, cross = answer.accuracy_along, answer.accuracy_cross
+    if cross > along:  # the major axis lies across the road
+        along, cross, heading = cross, along, heading + 90.0
+    return ConfidenceEllipse(
+        semi_major_confidence=_axis_cm(along),
+        semi_minor_confidence=_axis_cm(cross),
+        semi_major_orientation=round(heading * 10.0) % 3600,  # 0.1 degree from true north
+    )
+
+
 def answer_cam(
-    raw: dict[str, Any], answer: CorrectedPosition, lane_position: int | None
+    raw: dict[str, Any],
+    answer: CorrectedPosition,
+    lane_position: int | None,
+    ellipse: ConfidenceEllipse | None = None,
 ) -> dict[str, Any]:
-    """The station's CAM with the corrected position, accuracy and lane position."""
+    """The station's CAM with the corrected position, its confidence ellipse (None: a
+    circle from the answer's accuracy, as off the map) and the lane position."""
     out = copy.deepcopy(raw)
     basic = out["message"]["basic_container"]
     ref = basic["reference_position"]
     ref["latitude"] = round(answer.latitude * 1e7)  # deg -> 0.1 microdegree
     ref["longitude"] = round(answer.longitude * 1e7)
-    axis = min(round(answer.accuracy / math.sqrt(2.0) * CHI2_95 * 100.0), 4093)  # 95 %, cm
-    ref["position_confidence_ellipse"] = {
-        "semi_major_confidence": max(axis, 1),
-        "semi_minor_confidence": max(axis, 1),
-        "semi_major_orientation": 0,
-    }
+    if ellipse is None:
+        axis = _axis_cm(answer.accuracy / math.sqrt(2.0))
+        ellipse = ConfidenceEllipse(
+            semi_major_confidence=axis, semi_minor_confidence=axis, semi_major_orientation=0
+        )
+    ref["position_confidence_ellipse"] = ellipse.model_dump()
     hf = out["message"].setdefault("high_frequency_container", {})
     if lane_position is None:
         hf.pop("lane_position", None)
@@ -235,6 +312,7 @@ class CamBridge(MqttBridge):
         self.config = config or CamConfig()
         super().__init__(broker, pool, [self.config.topic_filter], name="laas-cam")
         self.hdmap = hdmap
+        self.keep_left = keeps_left(hdmap)
         self.ignored = 0  # retained CAMs, road-side units, CAMs without a position
         self.station_types: dict[str, str] = {}  # device -> the kind of road user it says
 
@@ -269,8 +347,10 @@ class CamBridge(MqttBridge):
     def _answer(self, topic: str, raw: dict[str, Any], answer: Answer) -> None:
         if not isinstance(answer, CorrectedPosition):
             return
-        lane = etsi_lane_position(self.hdmap, answer)
-        payload = json.dumps(answer_cam(raw, answer, lane), separators=(",", ":")).encode()
+        lane = etsi_lane_position(self.hdmap, answer, self.keep_left)
+        ellipse = confidence_ellipse(self.hdmap, answer)
+        out = answer_cam(raw, answer, lane, ellipse)
+        payload = json.dumps(out, separators=(",", ":")).encode()
         self.publish(topic, payload, qos=0)
 
     def forgotten(self, names: list[str]) -> None:

@@ -7,9 +7,11 @@ is a :class:`MapError` that names the feature and the problem.
 
 from __future__ import annotations
 
+import gc
 import json
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -18,12 +20,20 @@ from typing import Any, cast
 import numpy as np
 import numpy.typing as npt
 import shapely
-from shapely import LineString
 
 from laas.errors import MapError
-from laas.map.frame import sharpest_turn
+from laas.map.frame import FrameStack
 from laas.map.geo import UtmProjection
-from laas.map.hdmap import DIRECTIONS, LANE_TYPES, Direction, HdMap, Lane, LaneType, Segment
+from laas.map.hdmap import (
+    DIRECTIONS,
+    LANE_TYPES,
+    Direction,
+    HdMap,
+    Lane,
+    LaneType,
+    Segment,
+    prepare,
+)
 
 __all__ = [
     "MAX_TURN_DEG",
@@ -77,13 +87,14 @@ def read_geojson_file(path: str | Path) -> HdMap:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise MapError(f"{p}: cannot read the map file: {exc.strerror or exc}") from exc
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise MapError(
-            f"{p}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}"
-        ) from exc
-    return read_geojson(data, source=str(p))
+    with _gc_paused():
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise MapError(
+                f"{p}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}"
+            ) from exc
+        return read_geojson(data, source=str(p))
 
 
 Reject = Callable[[str, str], None]
@@ -103,7 +114,22 @@ def read_geojson(
     alone, with the references to left-out or unknown ones dropped, load without
     `reject` to the same map (what ``laas.map.importers.common`` relies on).
     """
-    return _build(data, source, reject)
+    with _gc_paused():
+        return _build(data, source, reject)
+
+
+@contextmanager
+def _gc_paused() -> Iterator[None]:
+    """Python's cycle collector off while a map is built: a load makes tens of thousands
+    of objects and no cycles, and the collections it would trigger walk every object the
+    process holds (a quarter of Helsinki's load time). Back on afterwards if it was on."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 @dataclass
@@ -194,6 +220,42 @@ def _parse_feature(source: str, i: int, feature: object) -> _RawLane:
         raise MapError(f"{at}: LineString 'coordinates' must be a list")
     if len(coords) < 2:
         raise MapError(f"{at}: LineString needs at least 2 points, got {len(coords)}")
+    # plain numbers are taken as they are, their range checked with the other lanes' (in
+    # `_tail_faults`); anything else is checked here, one position at a time
+    lonlat = _lonlat_fast(coords)
+    if lonlat is None:
+        lonlat = _lonlat_checked(at, coords)
+    extra = {k: v for k, v in props.items() if k not in _KNOWN_PROPERTIES}
+    return _RawLane(
+        i,
+        seg,
+        lane,
+        cast(LaneType, ltype),
+        width_f,
+        cast(Direction, direction),
+        lonlat,
+        tuple(succ),
+        extra,
+    )
+
+
+def _lonlat_fast(coords: list[Any]) -> FloatArray | None:
+    """The [lon, lat] of each position when every one is a list of 2 or 3 plain floats or
+    ints (their range not yet checked); otherwise None."""
+    plain = (float, int)
+    if not all(
+        type(pos) is list and 2 <= len(pos) <= 3 and all(type(c) in plain for c in pos)
+        for pos in coords
+    ):
+        return None
+    try:
+        return np.array([pos[:2] for pos in coords], dtype=np.float64)
+    except (OverflowError, ValueError):
+        return None
+
+
+def _lonlat_checked(at: str, coords: list[Any]) -> FloatArray:
+    """The [lon, lat] of each position, checked one by one; MapError names the first fault."""
     lonlat = np.empty((len(coords), 2))
     for k, pos in enumerate(coords):
         if (
@@ -214,26 +276,47 @@ def _parse_feature(source: str, i: int, feature: object) -> _RawLane:
                 "(GeoJSON order is [longitude, latitude])"
             )
         lonlat[k] = lon, lat
-    if not np.any(lonlat[1:] != lonlat[0]):
-        raise MapError(f"{at}: LineString has fewer than 2 distinct points")
-    line = LineString(lonlat)
-    if line.is_closed:
-        raise MapError(f"{at}: LineString is closed (first point equals last)")
-    if not shapely.is_simple(line):
-        raise MapError(f"{at}: LineString intersects itself")
+    return lonlat
 
-    extra = {k: v for k, v in props.items() if k not in _KNOWN_PROPERTIES}
-    return _RawLane(
-        i,
-        seg,
-        lane,
-        cast(LaneType, ltype),
-        width_f,
-        cast(Direction, direction),
-        lonlat,
-        tuple(succ),
-        extra,
-    )
+
+def _tail_faults(
+    source: str, raws: Sequence[_RawLane], features: Sequence[Any]
+) -> list[MapError | None]:
+    """The last checks of each lane's coordinates, for all lanes at once, in the order
+    :func:`_parse_feature` would make them: lon/lat in range (where out of range, that
+    function's check names the position), at least 2 distinct points, a LineString (in
+    lon/lat, as written) that is not closed and does not cross itself."""
+    if not raws:
+        return []
+    counts = np.array([len(raw.lonlat) for raw in raws])
+    starts = np.cumsum(counts) - counts
+    owner = np.repeat(np.arange(len(raws)), counts)
+    ll = np.concatenate([raw.lonlat for raw in raws])
+    bad = ~(np.isfinite(ll).all(axis=1) & (np.abs(ll[:, 0]) <= 180.0) & (np.abs(ll[:, 1]) <= 90.0))
+    out_of_range = np.logical_or.reduceat(bad, starts)
+    distinct = np.logical_or.reduceat(np.any(ll != ll[starts][owner], axis=1), starts)
+    lines = shapely.linestrings(np.where(bad[:, None], 0.0, ll), indices=owner)
+    closed, simple = shapely.is_closed(lines), shapely.is_simple(lines)
+    out: list[MapError | None] = []
+    for k, raw in enumerate(raws):
+        if distinct[k] and not out_of_range[k] and simple[k] and not closed[k]:
+            out.append(None)
+            continue
+        at = _where(source, raw.feature, raw.segment, raw.index)
+        if out_of_range[k]:
+            try:
+                _lonlat_checked(at, features[raw.feature]["geometry"]["coordinates"])
+            except MapError as exc:
+                out.append(exc)
+                continue
+        if not distinct[k]:
+            out.append(MapError(f"{at}: LineString has fewer than 2 distinct points"))
+        elif closed[k] or not simple[k]:
+            problem = "is closed (first point equals last)" if closed[k] else "intersects itself"
+            out.append(MapError(f"{at}: LineString {problem}"))
+        else:
+            out.append(None)
+    return out
 
 
 def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -> HdMap:
@@ -256,13 +339,21 @@ def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -
             bad.add(seg_id)
             reject(seg_id, str(exc))
 
+    parsed: list[_RawLane | MapError] = []
     for i, f in enumerate(features):
         try:
-            raws.append(_parse_feature(source, i, f))
+            parsed.append(_parse_feature(source, i, f))
         except MapError as exc:
-            props = f.get("properties") if isinstance(f, Mapping) else None
-            seg = props.get("segment") if isinstance(props, Mapping) else None
-            fault(seg if isinstance(seg, str) and seg else f"feature {i}", exc)
+            parsed.append(exc)
+    shapes = iter(_tail_faults(source, [p for p in parsed if isinstance(p, _RawLane)], features))
+    for i, (f, p) in enumerate(zip(features, parsed, strict=True)):
+        problem = p if isinstance(p, MapError) else next(shapes)
+        if problem is None:
+            raws.append(cast(_RawLane, p))
+            continue
+        props = f.get("properties") if isinstance(f, Mapping) else None
+        seg = props.get("segment") if isinstance(props, Mapping) else None
+        fault(seg if isinstance(seg, str) and seg else f"feature {i}", problem)
     by_seg: dict[str, dict[int, _RawLane]] = {}
     for raw in raws:
         lanes = by_seg.setdefault(raw.segment, {})
@@ -309,15 +400,12 @@ def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -
         if not usable:
             raise MapError(f"{source}: no usable road element (every one was left out)")
         projection = _projection(usable)
-        segments: list[Segment] = []
-        for seg_id, lanes in by_seg.items():
-            if seg_id in bad:
-                continue
-            ordered = [lanes[k] for k in range(len(lanes))]
-            try:
-                segments.append(_make_segment(source, projection, seg_id, ordered))
-            except MapError as exc:
-                fault(seg_id, exc)
+        groups = [
+            (seg_id, [lanes[k] for k in range(len(lanes))])
+            for seg_id, lanes in by_seg.items()
+            if seg_id not in bad
+        ]
+        segments = _make_segments(source, projection, groups, fault)
         if reject is None:
             break
         kept_raws = [r for r in usable if r.segment not in bad]
@@ -327,7 +415,7 @@ def _build(data: Mapping[str, Any], source: str, reject: Reject | None = None) -
     if reject is not None:
         kept = {seg.id for seg in segments}
         segments = [
-            Segment(seg.id, seg.lanes, [s for s in seg.successors if s in kept])
+            seg._relinked([s for s in seg.successors if s in kept])
             if any(s not in kept for s in seg.successors)
             else seg
             for seg in segments
@@ -341,53 +429,91 @@ def _projection(raws: Sequence[_RawLane]) -> UtmProjection:
     return UtmProjection.for_location(float(np.mean(all_ll[:, 0])), float(np.mean(all_ll[:, 1])))
 
 
-def _make_segment(
-    source: str, proj: UtmProjection, seg_id: str, raws: Sequence[_RawLane]
-) -> Segment:
-    lanes = []
-    for raw in raws:
-        xy = proj.to_utm_array(raw.lonlat[:, 0], raw.lonlat[:, 1])
-        lanes.append(
+def _make_segments(
+    source: str,
+    proj: UtmProjection,
+    groups: Sequence[tuple[str, Sequence[_RawLane]]],
+    fault: Callable[[str, MapError], None],
+) -> list[Segment]:
+    """Build and check the road elements, each lane's raw lane list in index order.
+
+    The work is done for all of them at once (one projection of every point, one frame
+    stack, :func:`~laas.map.hdmap.prepare`); the checks are those of one element at a
+    time, and each element's first fault is passed to `fault` in the elements' order.
+    """
+    raws = [raw for _, lanes in groups for raw in lanes]
+    if not raws:
+        return []
+    lonlat = np.concatenate([raw.lonlat for raw in raws])
+    xy = proj.to_utm_array(lonlat[:, 0], lonlat[:, 1])
+    counts = np.array([len(raw.lonlat) for raw in raws])
+    lines = shapely.linestrings(xy, indices=np.repeat(np.arange(len(raws)), counts))
+    first = np.cumsum([len(lanes) for _, lanes in groups]) - [len(lanes) for _, lanes in groups]
+    start = np.cumsum(counts) - counts
+    refs = [xy[start[k] : start[k] + counts[k]] for k in first]  # each lane 0
+    turns, vertices = FrameStack(refs).sharpest_turns()
+    errors: dict[int, MapError] = {}
+    built: list[tuple[int, Segment]] = []
+    for g, (seg_id, lanes) in enumerate(groups):
+        ref = lanes[0]
+        turn = math.degrees(float(turns[g]))
+        if turn > MAX_TURN_DEG:
+            errors[g] = MapError(
+                f"{_where(source, ref.feature, seg_id, 0)}: the reference centre line turns "
+                f"by {turn:.0f} degrees at vertex {int(vertices[g])} (at most "
+                f"{MAX_TURN_DEG:.0f} allowed; add vertices along the curve)"
+            )
+            continue
+        made = [
             Lane(
                 seg_id,
                 raw.index,
                 raw.type,
                 raw.width,
                 raw.direction,
-                LineString(xy),
+                lines[first[g] + k],
                 MappingProxyType(dict(raw.extra)),
             )
-        )
-    ref = raws[0]
-    turn, vertex = sharpest_turn(np.asarray(lanes[0].centerline.coords))
-    if turn > MAX_TURN_DEG:
-        raise MapError(
-            f"{_where(source, ref.feature, seg_id, 0)}: the reference centre line turns "
-            f"by {turn:.0f} degrees at vertex {vertex} (at most {MAX_TURN_DEG:.0f} "
-            "allowed; add vertices along the curve)"
-        )
-    successors = [s for raw in raws for s in raw.successors]
-    try:
-        seg = Segment(seg_id, lanes, successors)
-    except MapError as exc:
-        raise MapError(f"{_where(source, ref.feature, seg_id)}: {exc}") from exc
-    _check_side_by_side(source, seg, raws)
-    try:
-        _ = seg.area
-    except MapError as exc:
-        raise MapError(f"{_where(source, ref.feature, seg_id)}: {exc}") from exc
-    return seg
+            for k, raw in enumerate(lanes)
+        ]
+        successors = [s for raw in lanes for s in raw.successors]
+        try:
+            built.append((g, Segment(seg_id, made, successors)))
+        except MapError as exc:
+            errors[g] = MapError(f"{_where(source, ref.feature, seg_id)}: {exc}")
+    done: dict[int, Segment] = {}
+    for (g, seg), prep in zip(built, prepare([seg for _, seg in built]), strict=True):
+        seg_id, lanes = groups[g]
+        try:
+            _check_side_by_side(source, seg, lanes, prep.samples)
+        except MapError as exc:
+            errors[g] = exc
+            continue
+        try:
+            seg.settle_area(prep.surface)
+        except MapError as exc:
+            errors[g] = MapError(f"{_where(source, lanes[0].feature, seg_id)}: {exc}")
+            continue
+        done[g] = seg
+    for g, (seg_id, _) in enumerate(groups):
+        if g in errors:
+            fault(seg_id, errors[g])
+    return [done[g] for g in range(len(groups)) if g in done]
 
 
-def _check_side_by_side(source: str, seg: Segment, raws: Sequence[_RawLane]) -> None:
-    """Lanes must follow the reference direction, cover it, and lie next to each other in order."""
+def _check_side_by_side(
+    source: str, seg: Segment, raws: Sequence[_RawLane], samples: Sequence[FloatArray]
+) -> None:
+    """Lanes must follow the reference direction, cover it, and lie next to each other in order.
+
+    `samples`: (s, d) of each lane's densified centre line but lane 0's (:func:`prepare`).
+    """
+    if len(raws) < 2:
+        return
     length = seg.length
     tol_s = cover_tolerance(length)
-    samples = seg._lane_samples
-    for raw, sd in zip(raws, samples, strict=True):
+    for raw, sd in zip(raws[1:], samples, strict=True):
         at = _where(source, raw.feature, seg.id, raw.index)
-        if raw.index == 0:
-            continue
         if sd[-1, 0] <= sd[0, 0]:
             raise MapError(
                 f"{at}: the centre line runs against the segment's reference direction "
@@ -400,23 +526,30 @@ def _check_side_by_side(source: str, seg: Segment, raws: Sequence[_RawLane]) -> 
                 f"{at}: the lane covers stations {lo:.1f}..{hi:.1f} m of the segment, "
                 f"but lane 0 runs 0..{length:.1f} m (tolerance {tol_s:.1f} m)"
             )
-    for s in gap_stations(length):
-        offsets = seg.lane_offsets(float(s))
+    stations = gap_stations(length)
+    table = seg.lane_offsets_many(stations)  # (stations, lanes)
+    gap = table[:, 1:] - table[:, :-1]
+    widths = np.array([raw.width for raw in raws])
+    expected = (widths[:-1] + widths[1:]) / 2.0
+    tol = np.maximum(_GAP_SHARE * expected, _GAP_MIN)  # gap_tolerance, per neighbour pair
+    if not np.any((gap <= 0.0) | (np.abs(gap - expected) > tol)):
+        return
+    for s, offsets in zip(stations, table, strict=True):  # name the first fault
         for k in range(len(raws) - 1):
             a, b = raws[k], raws[k + 1]
             at = _where(source, b.feature, seg.id, b.index)
-            gap = float(offsets[k + 1] - offsets[k])
-            expected = (a.width + b.width) / 2.0
-            tol = gap_tolerance(expected)
-            if gap <= 0.0:
+            gap_k = float(offsets[k + 1] - offsets[k])
+            expected_k = (a.width + b.width) / 2.0
+            tol_k = gap_tolerance(expected_k)
+            if gap_k <= 0.0:
                 raise MapError(
                     f"{at}: at station {s:.1f} m the lane is not to the right of lane "
                     f"{a.index} (lateral offset {offsets[k + 1]:.2f} m vs "
                     f"{offsets[k]:.2f} m); lanes are numbered from the left"
                 )
-            if abs(gap - expected) > tol:
+            if abs(gap_k - expected_k) > tol_k:
                 raise MapError(
-                    f"{at}: at station {s:.1f} m the lane is {gap:.2f} m from lane "
-                    f"{a.index}, expected {expected:.2f} ± {tol:.2f} m from the widths; "
+                    f"{at}: at station {s:.1f} m the lane is {gap_k:.2f} m from lane "
+                    f"{a.index}, expected {expected_k:.2f} ± {tol_k:.2f} m from the widths; "
                     "the lanes do not run side by side"
                 )

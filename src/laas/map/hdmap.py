@@ -10,8 +10,9 @@ engine never knows where a map came from.
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -23,11 +24,21 @@ import shapely
 from shapely import LineString, Point, Polygon, STRtree
 
 from laas.errors import MapError
-from laas.map.frame import Frame
+from laas.map.frame import MIN_PIECE, Frame, FrameStack
 from laas.map.geo import UtmProjection
 from laas.models import LaneType
 
-__all__ = ["DIRECTIONS", "LANE_TYPES", "Direction", "HdMap", "Lane", "LaneType", "Segment"]
+__all__ = [
+    "DIRECTIONS",
+    "LANE_TYPES",
+    "Direction",
+    "HdMap",
+    "Lane",
+    "LaneType",
+    "Prepared",
+    "Segment",
+    "prepare",
+]
 
 Direction = Literal["forward", "backward", "both"]
 LANE_TYPES: frozenset[str] = frozenset(get_args(LaneType))
@@ -62,9 +73,9 @@ class Segment:
     __slots__ = (
         "_area",
         "_frame",
+        "_from",
         "_id",
         "_lane_d",
-        "_lane_samples",
         "_lanes",
         "_left",
         "_reference",
@@ -85,25 +96,41 @@ class Segment:
         self._lanes = ordered
         self._successors = tuple(dict.fromkeys(successors))
         self._reference = ordered[0].centerline
-        self._frame = Frame(np.asarray(self._reference.coords, dtype=np.float64)[:, :2])
-
-        # Each lane's offset d(s) along the reference, sampled from its (densified) centre line.
-        length = self._frame.length
-        grid = np.linspace(0.0, length, max(2, math.ceil(length / _OFFSET_STEP) + 1))
-        samples: list[FloatArray] = []
-        table = np.zeros((len(grid), len(ordered)))
-        for k, lane in enumerate(ordered):
-            dense = shapely.segmentize(lane.centerline, _OFFSET_STEP)
-            sd = self._frame.frame_array(np.asarray(dense.coords, dtype=np.float64)[:, :2])
-            samples.append(sd)
-            if k > 0:
-                order = np.argsort(sd[:, 0], kind="stable")
-                table[:, k] = np.interp(grid, sd[order, 0], sd[order, 1])
-        self._lane_samples = tuple(samples)
-        self._lane_d = table
         self._left = -ordered[0].width / 2.0
-
+        # The frame, the lane-offset table and the surface are built on first use, or for
+        # a whole map at once by `prepare`. A reference too short for a frame is refused
+        # here: it is one whose ends lie within MIN_PIECE (else two vertices survive).
+        self._frame: Frame | None = None
+        self._from: tuple[FrameStack, int] | None = None  # where `prepare` put the frame
+        self._lane_d: FloatArray | None = None
         self._area: Polygon | None = None
+        ref = shapely.get_coordinates(self._reference)
+        if math.dist(ref[0], ref[-1]) <= MIN_PIECE:
+            self._frame = Frame(ref)
+
+    def _relinked(self, successors: Iterable[str]) -> Segment:
+        """This segment with other successors, sharing what was built."""
+        seg = Segment(self._id, self._lanes, successors)
+        seg._frame, seg._from = self._frame, self._from
+        seg._lane_d, seg._area = self._lane_d, self._area
+        return seg
+
+    @property
+    def _f(self) -> Frame:
+        """The frame, built on first use."""
+        if self._frame is None:
+            if self._from is not None:
+                self._frame = self._from[0].frame(self._from[1])
+            else:
+                self._frame = Frame(shapely.get_coordinates(self._reference))
+        return self._frame
+
+    @property
+    def _table(self) -> FloatArray:
+        """d of each lane (columns) at equally spaced stations (rows); built on first use."""
+        if self._lane_d is None:
+            prepare([self])
+        return cast(FloatArray, self._lane_d)
 
     # -- attributes --------------------------------------------------------------------------
 
@@ -131,23 +158,16 @@ class Segment:
         Built on first use (the loader validates the lanes first, then builds it).
         """
         if self._area is None:
-            self._area = self._build_area()
+            self._area = self._build_area(_surfaces([self])[0])
         return self._area
 
-    def _build_area(self) -> Polygon:
-        ordered = self._lanes
-        parts = [
-            shapely.buffer(lane.centerline, lane.width / 2.0, cap_style="flat") for lane in ordered
-        ]
-        area = shapely.union_all(parts)
-        if not isinstance(area, Polygon) or len(area.interiors) > 0:
-            # small gaps between lanes (tolerated by validation): close them morphologically
-            gap = 0.75
-            closed = shapely.buffer(
-                shapely.buffer(area, gap, join_style="mitre"), -gap, join_style="mitre"
-            )
-            if isinstance(closed, Polygon) and not closed.is_empty:
-                area = Polygon(closed.exterior)
+    def settle_area(self, surface: Any) -> None:
+        """Make the surface from the union of the lanes' buffers (:class:`Prepared`); raises
+        :class:`MapError` if they do not form one."""
+        self._area = self._build_area(surface)
+
+    def _build_area(self, area: Any) -> Polygon:
+        """The surface from :func:`_surfaces`; it must be one polygon."""
         if not isinstance(area, Polygon):
             raise MapError(f"segment {self._id!r}: the lanes do not form one connected surface")
         return area
@@ -155,7 +175,9 @@ class Segment:
     @property
     def length(self) -> float:
         """Length of the reference line in metres."""
-        return self._frame.length
+        if self._frame is None and self._from is not None:
+            return self._from[0].length(self._from[1])
+        return self._f.length
 
     def __repr__(self) -> str:
         return (
@@ -170,26 +192,26 @@ class Segment:
         x, y = float(x), float(y)
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"point must be finite, got ({x}, {y})")
-        return self._frame.frame(x, y)
+        return self._f.frame(x, y)
 
     def frame_array(self, xy: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`frame`: (n, 2) UTM points -> (n, 2) of (s, d)."""
-        return self._frame.frame_array(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+        return self._f.frame_array(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
 
     def point(self, s: float, d: float = 0.0) -> tuple[float, float]:
         """The UTM point at station s and lateral offset d; the inverse of :meth:`frame`."""
         s, d = float(s), float(d)
         if not (math.isfinite(s) and math.isfinite(d)):
             raise ValueError(f"station and offset must be finite, got ({s}, {d})")
-        return self._frame.point(s, d)
+        return self._f.point(s, d)
 
     def tangent(self, s: float) -> FloatArray:
         """Unit (east, north) vector of the reference direction at station s."""
-        return cast(FloatArray, self._frame.t[self._frame.piece_at(s)].copy())
+        return cast(FloatArray, self._f.t[self._f.piece_at(s)].copy())
 
     def heading(self, s: float) -> float:
         """Reference direction at s in degrees from (grid) north, clockwise, in [0, 360)."""
-        tx, ty = self._frame.t[self._frame.piece_at(s)]
+        tx, ty = self._f.t[self._f.piece_at(s)]
         h = math.degrees(math.atan2(tx, ty)) % 360.0
         return 0.0 if h >= 360.0 else h
 
@@ -200,10 +222,22 @@ class Segment:
         """
         if not math.isfinite(s):
             raise ValueError(f"station must be finite, got {s}")
-        table = self._lane_d
+        table = self._table
         pos = min(max(s, 0.0), self.length) / self.length * (len(table) - 1)
         i = min(int(pos), len(table) - 2)
         f = pos - i
+        return cast(FloatArray, table[i] + f * (table[i + 1] - table[i]))
+
+    def lane_offsets_many(self, s: npt.ArrayLike) -> FloatArray:
+        """Vectorised :meth:`lane_offsets`: (n,) stations -> (n, L), the same values."""
+        st = np.asarray(s, dtype=np.float64).reshape(-1)
+        if not np.all(np.isfinite(st)):
+            raise ValueError("stations must be finite")
+        table = self._table
+        # pos = clamp(s, 0, length) / length * (rows - 1);  d = D_i + f (D_{i+1} - D_i)
+        pos = np.minimum(np.maximum(st, 0.0), self.length) / self.length * (len(table) - 1)
+        i = np.minimum(pos.astype(np.intp), len(table) - 2)
+        f = (pos - i)[:, None]
         return cast(FloatArray, table[i] + f * (table[i + 1] - table[i]))
 
     def lateral_bounds(self, s: float) -> tuple[float, float]:
@@ -224,6 +258,100 @@ class Segment:
         s, d = self.frame(x, y)
         left, right = self.lateral_bounds(s)
         return min(s, self.length - s, d - left, right - d)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """What :func:`prepare` built for one segment that the loader checks: the (s, d) of each
+    lane's densified centre line but lane 0's (one (n, 2) array per lane), and the union
+    of the lanes' buffers, from which :meth:`Segment.settle_area` makes the surface."""
+
+    samples: tuple[FloatArray, ...]
+    surface: Any
+
+
+def prepare(segments: Sequence[Segment]) -> list[Prepared]:
+    """Build the frames and lane-offset tables of many segments together, as a map load does.
+
+    One :class:`FrameStack` holds every reference; every lane but lane 0 is densified to
+    ``_OFFSET_STEP`` and put in its segment's frame in one call, and each lane's offset table
+    column is ``d(s)`` interpolated at equally spaced stations. A segment alone builds the
+    same on first use (through this function, with a list of one).
+    """
+    if not segments:
+        return []
+    stack = FrameStack([shapely.get_coordinates(seg.reference) for seg in segments])
+    for k, seg in enumerate(segments):
+        if seg._frame is None:
+            seg._from = (stack, k)
+    owner = np.array([k for k, seg in enumerate(segments) for _ in seg.lanes[1:]], np.intp)
+    lines = np.array([lane.centerline for seg in segments for lane in seg.lanes[1:]], object)
+    parts: list[FloatArray] = []
+    if len(lines):
+        dense = shapely.segmentize(lines, _OFFSET_STEP)
+        xy, line_of = shapely.get_coordinates(dense, return_index=True)
+        sd = stack.frame_many(xy, owner[line_of])
+        cut = np.searchsorted(line_of, np.arange(len(lines) + 1)).tolist()
+        parts = [sd[lo:hi] for lo, hi in itertools.pairwise(cut)]
+    out: list[Prepared] = []
+    surfaces = _surfaces(segments)
+    j = 0
+    for seg, surface in zip(segments, surfaces, strict=True):
+        mine = tuple(parts[j : j + len(seg.lanes) - 1])
+        j += len(mine)
+        out.append(Prepared(mine, surface))
+        if seg._lane_d is not None:
+            continue
+        if not mine:  # one lane: its offset is 0 everywhere
+            seg._lane_d = np.zeros((2, 1))
+            continue
+        length = seg.length
+        grid = np.linspace(0.0, length, max(2, math.ceil(length / _OFFSET_STEP) + 1))
+        table = np.zeros((len(grid), len(seg.lanes)))
+        for c, lane_sd in enumerate(mine, start=1):
+            order = np.argsort(lane_sd[:, 0], kind="stable")
+            table[:, c] = np.interp(grid, lane_sd[order, 0], lane_sd[order, 1])
+        seg._lane_d = table
+    return out
+
+
+def _surfaces(segments: Sequence[Segment]) -> list[Any]:
+    """Each segment's surface, all at once: the union of its lane centre lines buffered by
+    half their width, flat caps (a lane alone: its buffer). Where that is not one polygon
+    without holes (small gaps between lanes, which validation tolerates), it is closed
+    morphologically: the exterior of ``buffer(buffer(union, g), -g)``, mitred, g = 0.75 m,
+    if that is a polygon."""
+    lanes = [lane for seg in segments for lane in seg.lanes]
+    buffers = shapely.buffer(
+        np.array([lane.centerline for lane in lanes], object),
+        np.array([lane.width / 2.0 for lane in lanes]),
+        cap_style="flat",
+    )
+    # the union of a segment's buffers; one lane's buffer is its surface as it is
+    width = np.array([len(seg.lanes) for seg in segments])
+    first = np.cumsum(width) - width
+    union = buffers[first]
+    multi = np.flatnonzero(width > 1)
+    if len(multi):
+        table = np.full((len(multi), int(width.max())), None, object)
+        rows = np.repeat(np.arange(len(multi)), width[multi])
+        cols = np.concatenate([np.arange(w) for w in width[multi]])
+        table[rows, cols] = buffers[np.repeat(first[multi], width[multi]) + cols]
+        union[multi] = shapely.union_all(table, axis=1)
+    polygon = shapely.get_type_id(union) == 3
+    holes = np.zeros(len(union), np.intp)
+    holes[polygon] = shapely.get_num_interior_rings(union[polygon])
+    gappy = np.flatnonzero(~polygon | (holes > 0))
+    out = list(union)
+    if len(gappy):
+        gap = 0.75
+        closed = shapely.buffer(
+            shapely.buffer(union[gappy], gap, join_style="mitre"), -gap, join_style="mitre"
+        )
+        for k, c in zip(gappy, closed, strict=True):
+            if isinstance(c, Polygon) and not c.is_empty:
+                out[k] = Polygon(c.exterior)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------

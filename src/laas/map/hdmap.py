@@ -382,7 +382,7 @@ class HdMap:
         self._segments = MappingProxyType(by_id)
         self._sorted = sorted(segs, key=lambda seg: seg.id)  # tree index order = id order
         self._tree = STRtree([seg.area for seg in self._sorted])
-        b = np.array([seg.area.bounds for seg in segs])
+        b = shapely.bounds(np.array([seg.area for seg in segs], object))
         self._bounds = (
             float(b[:, 0].min()),
             float(b[:, 1].min()),

@@ -8,6 +8,7 @@ is a :class:`MapError` that names the feature and the problem.
 from __future__ import annotations
 
 import gc
+import itertools
 import json
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -513,43 +514,40 @@ def _check_side_by_side(
     length = seg.length
     tol_s = cover_tolerance(length)
     for raw, sd in zip(raws[1:], samples, strict=True):
-        at = _where(source, raw.feature, seg.id, raw.index)
-        if sd[-1, 0] <= sd[0, 0]:
-            raise MapError(
-                f"{at}: the centre line runs against the segment's reference direction "
-                "(coordinates must follow lane 0's order; use direction 'backward' for "
-                "travel against it)"
-            )
-        lo, hi = float(sd[:, 0].min()), float(sd[:, 0].max())
-        if lo > tol_s or lo < -tol_s or hi < length - tol_s or hi > length + tol_s:
+        s = sd[:, 0]
+        lo, hi = float(s.min()), float(s.max())
+        backward = s[-1] <= s[0]
+        if backward or lo > tol_s or lo < -tol_s or hi < length - tol_s or hi > length + tol_s:
+            at = _where(source, raw.feature, seg.id, raw.index)
+            if backward:
+                raise MapError(
+                    f"{at}: the centre line runs against the segment's reference direction "
+                    "(coordinates must follow lane 0's order; use direction 'backward' for "
+                    "travel against it)"
+                )
             raise MapError(
                 f"{at}: the lane covers stations {lo:.1f}..{hi:.1f} m of the segment, "
                 f"but lane 0 runs 0..{length:.1f} m (tolerance {tol_s:.1f} m)"
             )
     stations = gap_stations(length)
-    table = seg.lane_offsets_many(stations)  # (stations, lanes)
-    gap = table[:, 1:] - table[:, :-1]
-    widths = np.array([raw.width for raw in raws])
-    expected = (widths[:-1] + widths[1:]) / 2.0
-    tol = np.maximum(_GAP_SHARE * expected, _GAP_MIN)  # gap_tolerance, per neighbour pair
-    if not np.any((gap <= 0.0) | (np.abs(gap - expected) > tol)):
-        return
-    for s, offsets in zip(stations, table, strict=True):  # name the first fault
-        for k in range(len(raws) - 1):
-            a, b = raws[k], raws[k + 1]
-            at = _where(source, b.feature, seg.id, b.index)
-            gap_k = float(offsets[k + 1] - offsets[k])
-            expected_k = (a.width + b.width) / 2.0
-            tol_k = gap_tolerance(expected_k)
-            if gap_k <= 0.0:
+    table = seg.lane_offsets_many(stations).tolist()  # d of every lane at every station
+    pairs = [
+        (k, a, b, (a.width + b.width) / 2.0) for k, (a, b) in enumerate(itertools.pairwise(raws))
+    ]
+    for s, offsets in zip(stations.tolist(), table, strict=True):
+        for k, a, b, expected in pairs:
+            gap = offsets[k + 1] - offsets[k]
+            tol = gap_tolerance(expected)
+            if gap <= 0.0:
                 raise MapError(
-                    f"{at}: at station {s:.1f} m the lane is not to the right of lane "
-                    f"{a.index} (lateral offset {offsets[k + 1]:.2f} m vs "
-                    f"{offsets[k]:.2f} m); lanes are numbered from the left"
+                    f"{_where(source, b.feature, seg.id, b.index)}: at station {s:.1f} m the "
+                    f"lane is not to the right of lane {a.index} (lateral offset "
+                    f"{offsets[k + 1]:.2f} m vs {offsets[k]:.2f} m); lanes are numbered from "
+                    "the left"
                 )
-            if abs(gap_k - expected_k) > tol_k:
+            if abs(gap - expected) > tol:
                 raise MapError(
-                    f"{at}: at station {s:.1f} m the lane is {gap_k:.2f} m from lane "
-                    f"{a.index}, expected {expected_k:.2f} ± {tol_k:.2f} m from the widths; "
-                    "the lanes do not run side by side"
+                    f"{_where(source, b.feature, seg.id, b.index)}: at station {s:.1f} m the "
+                    f"lane is {gap:.2f} m from lane {a.index}, expected {expected:.2f} ± "
+                    f"{tol:.2f} m from the widths; the lanes do not run side by side"
                 )

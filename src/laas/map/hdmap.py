@@ -231,14 +231,17 @@ class Segment:
     def lane_offsets_many(self, s: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`lane_offsets`: (n,) stations -> (n, L), the same values."""
         st = np.asarray(s, dtype=np.float64).reshape(-1)
-        if not np.all(np.isfinite(st)):
+        if not np.isfinite(st).all():
             raise ValueError("stations must be finite")
         table = self._table
+        length = self.length
         # pos = clamp(s, 0, length) / length * (rows - 1);  d = D_i + f (D_{i+1} - D_i)
-        pos = np.minimum(np.maximum(st, 0.0), self.length) / self.length * (len(table) - 1)
-        i = np.minimum(pos.astype(np.intp), len(table) - 2)
+        pos = st.clip(0.0, length) / length * (len(table) - 1)
+        i = pos.astype(np.intp)
+        i[i > len(table) - 2] = len(table) - 2
         f = (pos - i)[:, None]
-        return cast(FloatArray, table[i] + f * (table[i + 1] - table[i]))
+        lo = table[i]
+        return lo + f * (table[i + 1] - lo)
 
     def lateral_bounds(self, s: float) -> tuple[float, float]:
         """(d of the left edge, d of the right edge) of the road element at station s."""

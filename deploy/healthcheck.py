@@ -1,9 +1,14 @@
-"""Container health checks for the LDM cores and the LaaS worker (exit 0 healthy, 1 not).
+"""Container health checks for the LDM cores, the LaaS worker and the bridges (exit 0
+healthy, 1 not).
 
     python deploy/healthcheck.py core mqtt://broker-backbone:1883 user \
         --username ldm-core-user --password-env LDM_BACKBONE_PASSWORD
     python deploy/healthcheck.py service mqtt://broker-service:1883 laas \
         --username laas-worker --password-env LAAS_PASSWORD
+    python deploy/healthcheck.py ready --metrics-port-env LAAS_METRICS_PORT
+
+`ready`: the process's own /readyz (on 127.0.0.1 and the port in the environment
+variable --metrics-port-env names) answers 200: a bridge is connected to its broker.
 
 `core NAME`: the core's retained status on the backbone (`ldm/bb/core/NAME`) says
 online; its last will turns it offline when the process dies or loses the broker.
@@ -21,10 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import queue
 import secrets
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 from ldm import BrokerSettings, LdmError
@@ -56,16 +64,46 @@ def retained(broker: BrokerSettings | str, topic: str, timeout: float) -> bytes 
     return None
 
 
+def ready(port_env: str, timeout: float) -> int:
+    """0 if http://127.0.0.1:$port_env/readyz answers 200, else 1 (and why)."""
+    port = os.environ.get(port_env, "")
+    if not port.isdigit() or int(port) == 0:
+        print(f"unhealthy: {port_env} does not name the metrics port ({port!r})")
+        return 1
+    url = f"http://127.0.0.1:{port}/readyz"
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as response:
+            status = response.status
+    except urllib.error.HTTPError as exc:
+        status = exc.code
+    except OSError as exc:
+        print(f"unhealthy: {url}: {exc}")
+        return 1
+    print(f"{'healthy' if status == 200 else 'unhealthy'}: {url} answered {status}")
+    return 0 if status == 200 else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("kind", choices=["core", "service"])
-    parser.add_argument("url", help="broker that carries the retained message, mqtt://HOST:PORT")
-    parser.add_argument("name", help="core name or service name")
+    parser.add_argument("kind", choices=["core", "service", "ready"])
+    parser.add_argument(
+        "url", nargs="?", help="broker that carries the retained message, mqtt://HOST:PORT"
+    )
+    parser.add_argument("name", nargs="?", help="core name or service name")
+    parser.add_argument(
+        "--metrics-port-env",
+        default="LAAS_METRICS_PORT",
+        help="ready: the environment variable holding the process's metrics port",
+    )
     parser.add_argument("--timeout", type=float, default=3.0, help="seconds")
     parser.add_argument("--username", help="account on the broker (default: anonymous)")
     parser.add_argument("--password-env", help="environment variable holding its password")
     parser.add_argument("--ca-file", type=Path, help="CA certificates for an mqtts:// broker")
     a = parser.parse_args(argv)
+    if a.kind == "ready":
+        return ready(a.metrics_port_env, a.timeout)
+    if a.url is None or a.name is None:
+        parser.error(f"{a.kind} needs the broker URL and the {a.kind}'s name")
     topic = bb_core(a.name) if a.kind == "core" else announce(a.name)
     try:
         broker = build(

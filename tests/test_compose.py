@@ -18,6 +18,7 @@ deployment.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -210,6 +211,9 @@ SECRETS = {
     "LAAS_WORKER_PASSWORD": "w",
     "LAAS_HEALTH_PASSWORD": "h",
     "LAAS_SIM_PASSWORD": "p",
+    "LAAS_OWNTRACKS_PASSWORD": "o",
+    "LAAS_CAM_PASSWORD": "c",
+    "LAAS_DEVICE_PASSWORD": "d",
 }
 PUBLIC_KEYS = {"LAAS_SERVICE_KEY": "service-key=", "LAAS_CORE_KEY": "core-key="}
 SETTINGS = {**SECRETS, **PUBLIC_KEYS}  # what compose-accounts.sh puts in .env
@@ -231,7 +235,8 @@ def test_every_mosquitto_config_in_use_is_tuned_and_locked() -> None:
         assert found.get("set_tcp_nodelay") == "true", config
         assert ("listener", "1883") in options, config
         assert found.get("persistence") in ("false", "true"), config
-        assert found.get("message_size_limit") == "65536", config
+        assert found.get("max_packet_size") == "66560", config  # 64 KiB payload + 1 KiB
+        assert "message_size_limit" not in found, config  # deprecated: Mosquitto warns
         # anonymous access is off; every broker has its accounts and ACL, mounted
         assert [v for k, v in options if k == "allow_anonymous"] == ["false"], config
         files = mounts(service)
@@ -346,6 +351,9 @@ def image_uid() -> int:
     return int(found[1])
 
 
+PARTICIPANTS = ("simulator", "owntracks", "cam")  # services that are participants
+
+
 def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
     services = load_compose(SETTINGS)
     keys = {}
@@ -359,8 +367,8 @@ def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
         for volume in service.get("volumes", []):
             assert isinstance(volume, dict) and volume["bind"]["create_host_path"] is False
         command, env = service["command"], environment(service)
-        if name == "simulator":
-            assert not files, "the simulator is a participant: public keys only"
+        if name in PARTICIPANTS:
+            assert not files, f"{name} is a participant: public keys only"
             assert env["LAAS_SERVICE_KEY"] == PUBLIC_KEYS["LAAS_SERVICE_KEY"]
             assert env["LAAS_CORE_KEY"] == PUBLIC_KEYS["LAAS_CORE_KEY"]
             continue
@@ -557,6 +565,7 @@ def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> Non
     ).stdout.split()
     assert simulated == ["sim-car", "sim-cyclist-1", "sim-cyclist-2"]
     expected = ["ldm-core-user", "ldm-core-service", "laas-worker", "laas-health", *simulated]
+    expected += ["laas-owntracks", "laas-cam"]  # the bridges (profile bridges)
     assert sorted(users) == sorted(expected)
     assert not any(first[name] in hashes for name in SECRETS)  # hashes only
     assert make_accounts(tmp_path) == first  # again: nothing changes
@@ -578,6 +587,7 @@ class LocalCompose:
         self.keys = workdir / "keys"  # ... and the keys in ./deploy/security/keys/
         self.secrets = secrets
         self.ports = {name: free_port() for name, s in services.items() if is_broker(s)}
+        self.metrics_ports: dict[str, int] = {}  # a Python service's, on this host
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
     def host_file(self, path: Path) -> Path:
@@ -615,9 +625,11 @@ class LocalCompose:
     def env(self, service: Service) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if not k.startswith(("LAAS_", "LDM_"))}
         env.update({k: self.local(v, service) for k, v in environment(service).items()})
+        name = next(n for n, s in self.services.items() if s is service)
         for prefix in ("LDM", "LAAS"):  # a metrics port per container in compose; here
             if f"{prefix}_METRICS_PORT" in env:  # all share this host: a free port each
-                env[f"{prefix}_METRICS_PORT"] = "0"
+                port = self.metrics_ports.setdefault(name, free_port())
+                env[f"{prefix}_METRICS_PORT"] = str(port)
                 env[f"{prefix}_METRICS_HOST"] = "127.0.0.1"
         env["PYTHONUNBUFFERED"] = "1"
         return env
@@ -780,3 +792,107 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     assert local_compose.stop("worker") == 0
     assert f"{total} answered" in local_compose.log("worker")
     assert local_compose.healthcheck("worker").returncode == 1
+
+
+@pytest.mark.mosquitto
+@pytest.mark.timeout(150)
+def test_compose_bridges_serve_cam_stations_and_phones_under_the_shipped_acl(
+    local_compose: LocalCompose,
+) -> None:
+    """Profile `bridges` on the shipped ACL: a CAM station (its account its source_uuid)
+    gets every CAM answered and reads no other station's answers; an OwnTracks phone
+    gets its lane; each bridge logs its devices in as their own accounts. A CAM dated
+    20 minutes back is refused for its clock, and the worker's stop summary says so."""
+    from laas.map.bundled import bundled_map
+    from laas.map.hdmap import HdMap
+    from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
+    from ldm import BrokerSettings
+    from ldm.transport import Event, Message, Transport
+    from tests.bridges.test_live import cam_message, now_shifted
+    from tests.bridges.test_owntracks_acl import owntracks_location
+
+    services = local_compose.services
+    device = local_compose.secrets["LAAS_DEVICE_PASSWORD"]
+    station, other, station_id = "its-car-1", "its-car-2", 4242
+    own = {station: "station-pw", other: "other-pw", "alice": "alice-pw"}
+    lines = [f"{u}={pw}" for u, pw in own.items()]
+    lines += [f"cam.{station}.{station_id}={device}", f"ot.alice.phone={device}"]
+    subprocess.run(  # docs/bridges.md, "Accounts": before broker-user starts
+        ["bash", str(ACCOUNTS.parent / "make-passwd.sh"), str(local_compose.passwd), "-"],
+        input="\n".join(lines) + "\n", text=True, check=True, capture_output=True,
+        env={"PATH": "/usr/bin:/bin", "MODE": "0644"},
+    )  # fmt: skip
+    running = [n for n in start_order(services) if not services[n].get("profiles")]
+    bridges = [n for n, s in services.items() if s.get("profiles") == ["bridges"]]
+    assert sorted(bridges) == ["cam", "owntracks"]
+    for name in running + bridges:
+        local_compose.start(name)
+        local_compose.wait_healthy(name)
+    url = f"mqtt://127.0.0.1:{local_compose.ports['broker-user']}"
+    inboxes: dict[str, list[Message]] = {u: [] for u in own}
+
+    def connect(user: str, *subscriptions: str) -> Transport:
+        def sink(e: Event) -> None:
+            if isinstance(e, Message):
+                inboxes[user].append(e)
+
+        account = BrokerSettings(url=url, username=user, password=own[user])
+        t = Transport(account, client_id=user, sink=sink, name=user)
+        for topic in subscriptions:
+            t.subscribe(topic, 1)
+        t.start(timeout=5)
+        return t
+
+    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    trace = simulate(hdmap, hamburg_scenario(), ErrorModel(), 0)
+    car = now_shifted([f.measurement for f in trace.fixes if f.user == "car"][:20], 20.0)
+    car_station = connect(station, "laas/cam/#")  # the ACL lets it read laas/cam/its-car-1
+    snoop = connect(other, "laas/cam/#", "owntracks/#")  # ... and this one nothing of it
+    phone = connect("alice", "owntracks/+/+")
+    try:
+        old = cam_message(car[0], 0, station, station_id)
+        old["timestamp"] -= 20 * 60 * 1000  # 20 minutes back: refused for its clock
+        car_station.publish(f"v2x/cam/{station}/cam", json.dumps(old).encode(), 1, False)
+        for i, fix in enumerate(car[1:], 1):
+            cam = cam_message(fix, i, station, station_id)
+            car_station.publish(f"v2x/cam/{station}/cam", json.dumps(cam).encode(), 1, False)
+            location = owntracks_location(fix, fix.timestamp // 1000)
+            phone.publish("owntracks/alice/phone", json.dumps(location).encode(), 1, False)
+            time.sleep(0.1)
+
+        def answers(user: str, topic: str) -> list[dict[str, Any]]:
+            return [json.loads(m.payload) for m in inboxes[user] if m.topic == topic]
+
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (
+            len(answers(station, f"laas/cam/{station}")) < len(car) - 1
+            or not answers("alice", "owntracks/alice/phone-lane")
+        ):
+            time.sleep(0.2)
+    finally:
+        for t in (car_station, snoop, phone):
+            t.stop()
+    cams = answers(station, f"laas/cam/{station}")
+    assert len(cams) == len(car) - 1, local_compose.log("cam")
+    lanes = [c["message"]["high_frequency_container"].get("lane_position") for c in cams]
+    assert all(isinstance(n, int) and n >= 1 for n in lanes), lanes
+    ellipse = cams[-1]["message"]["basic_container"]["reference_position"]
+    axes = ellipse["position_confidence_ellipse"]
+    assert axes["semi_major_confidence"] > axes["semi_minor_confidence"], axes
+    assert answers("alice", "owntracks/alice/phone-lane"), local_compose.log("owntracks")
+    assert inboxes[other] == []  # no other station's answers, no phone's positions
+    for name in bridges:
+        assert local_compose.stop(name) == 0, local_compose.log(name)
+    assert local_compose.stop("worker") == 0
+    summary = re.search(
+        r"stopped; (\d+) answered, 1 refused \(1 clock\)", local_compose.log("worker")
+    )
+    assert summary and int(summary[1]) >= len(car), local_compose.log("worker")
+    assert "laas cam: stopped; 1 devices opened" in local_compose.log("cam")
+    # Mosquitto's own words at start: no deprecated option; the one warning is the
+    # service list's pattern, meant for every account (deploy/security/acl-user-cluster)
+    for name in ("broker-user", "broker-backbone", "broker-service"):
+        log = local_compose.log(name)
+        assert "message_size_limit" not in log, log
+        warnings = [line for line in log.splitlines() if "Warning" in line or "Note" in line]
+        assert all("'ldm/services'" in line for line in warnings), warnings

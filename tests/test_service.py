@@ -138,3 +138,23 @@ def test_an_observer_sees_each_answered_fix_and_cannot_stop_the_answers(
 
     service.observer = broken
     assert "segment" in send(service, "a", NOW + 1)
+
+
+def test_a_live_fix_dated_ahead_is_refused_and_locks_nobody_out(hamburg_map: HdMap) -> None:
+    """A phone (a live session: max_speedup 1) that sends one fix dated 5 minutes ahead,
+    3 s into its session, gets that fix refused for its clock; its next fixes, on time,
+    are answered (not refused as older than the one ahead)."""
+    clock = Clock(NOW)
+    service = LaasService(hamburg_map, wall_clock=clock)
+    assert service.config.max_speedup == 1.0
+    for k in range(3):
+        clock.now = NOW + k
+        assert "segment" in send(service, "phone", clock.now), k
+    clock.now = NOW + 3
+    ahead = send(service, "phone", clock.now + 300)
+    assert ahead["error"]["kind"] == "clock" and fields(ahead) == {"timestamp"}
+    for k in range(4, 12):
+        clock.now = NOW + k
+        assert "segment" in send(service, "phone", clock.now), k
+    assert (service.stats.answered, service.stats.clock, service.stats.refused) == (11, 1, 0)
+    assert service.stats.summary() == "11 answered, 1 refused (1 clock)"

@@ -21,6 +21,10 @@
 #   LAAS_WORKER_PASSWORD       laas-worker        the LaaS worker, on broker-service
 #   LAAS_HEALTH_PASSWORD       laas-health        the brokers' health checks ($SYS/broker/version)
 #   LAAS_SIM_PASSWORD          sim-car sim-cyclist-1 sim-cyclist-2   the simulator's road users
+#   LAAS_OWNTRACKS_PASSWORD    laas-owntracks     the OwnTracks bridge (profile bridges)
+#   LAAS_CAM_PASSWORD          laas-cam           the CAM bridge (profile bridges)
+#   LAAS_DEVICE_PASSWORD       (none yet)         the bridges' devices: add ot.USER.DEVICE and
+#                                                 cam.UUID.STATION with make-passwd.sh
 #
 # Identity keys (key file in deploy/security/keys/ -> public key variable):
 #   laas-worker.key    LAAS_SERVICE_KEY   the worker signs the laas service with it; both
@@ -71,7 +75,10 @@ for pair in \
   LDM_CORE_SERVICE_PASSWORD=ldm-core-service \
   LAAS_WORKER_PASSWORD=laas-worker \
   LAAS_HEALTH_PASSWORD=laas-health \
-  LAAS_SIM_PASSWORD=sim-car,sim-cyclist-1,sim-cyclist-2; do
+  LAAS_SIM_PASSWORD=sim-car,sim-cyclist-1,sim-cyclist-2 \
+  LAAS_OWNTRACKS_PASSWORD=laas-owntracks \
+  LAAS_CAM_PASSWORD=laas-cam \
+  LAAS_DEVICE_PASSWORD=; do # the devices' accounts: added as devices join (docs/bridges.md)
   var=${pair%%=*}
   password=$(value "$var")
   if [ -z "$password" ]; then

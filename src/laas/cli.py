@@ -290,7 +290,7 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
     from laas.regions import parse_region, split
-    from laas.service import SERVICE_NAME, start_worker
+    from laas.service import SERVICE_NAME, WorkerConfig, start_worker
 
     hdmap = HdMap.load(a.map)
     region = None
@@ -312,6 +312,7 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
         _broker(a),
         hdmap,
         _engine_config(a),
+        WorkerConfig(max_speedup=a.max_speedup),
         region=region,
         data_qos=a.data_qos,
         identity_file=a.identity,
@@ -339,12 +340,7 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
         if live_map is not None:
             live_map.stop()
         provider.stop()
-        s = service.stats
-        print(
-            f"laas worker: stopped; {s.answered} answered, {s.invalid} invalid, "
-            f"{s.refused} refused",
-            flush=True,
-        )
+        print(f"laas worker: stopped; {service.stats.summary()}", flush=True)
     return 0
 
 
@@ -683,6 +679,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="wait until the worker of this service (or --region) is gone, then take "
         "over under the same --identity",
+    )
+    p.add_argument(
+        "--max-speedup",
+        type=float,
+        default=float(os.environ.get("LAAS_MAX_SPEEDUP", "1")),
+        help="let a session's timestamps run this much faster than real time (env "
+        "LAAS_MAX_SPEEDUP; default 1, live devices): set it to a simulator's --speedup",
     )
     _engine_args(p)
     operations_args(p, "LAAS")

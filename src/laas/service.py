@@ -17,10 +17,15 @@ What the worker refuses, each with an error reply ``{"error": {"kind", "message"
 - ``outside``: a fix farther than ``max_distance`` metres from the map's bounds (the
   service area; it would also pull the shared common-error estimate);
 - ``clock``: a timestamp more than ``max_past`` seconds behind the worker's wall clock,
-  or, for a pseudonym's first fix, more than ``max_future`` seconds ahead of it. Later
-  fixes of the same pseudonym may run ahead of the wall clock by up to ``max_speedup``
-  times the time since its first fix (plus ``max_future``): a simulator sped up by a
-  factor s sends timestamps that run ahead by (1 - 1/s) of the scenario time;
+  or more than ``max_future`` seconds ahead of where the pseudonym's first fix puts it:
+
+      t <= t0 + max_speedup * (now - wall0) + max_future      (t0 at wall clock wall0)
+
+  ``max_speedup`` is 1 for live participants, so a phone's fix dated 5 minutes ahead is
+  refused instead of locking its later fixes out as stale. A worker that serves a
+  simulator sped up by a factor s (which sends timestamps running ahead by (1 - 1/s) of
+  the scenario time) is started with ``max_speedup`` >= s (`laas worker --max-speedup`,
+  and `LocalDeployment`, which serves simulations);
 - ``stale``: a duplicate, or older than the pseudonym's last fix;
 - ``internal``: the engine failed on this fix (logged; a bug to report).
 
@@ -86,7 +91,9 @@ class WorkerConfig(Settings):
     )
     max_past: float = Field(default=600.0, gt=0, description="a fix may lag the clock by, s")
     max_speedup: float = Field(
-        default=100.0, ge=1, description="later fixes may run this much faster than real time"
+        default=1.0,
+        ge=1,
+        description="later fixes may run this much faster than real time (simulators only)",
     )
     max_distance: float = Field(
         default=10_000.0, ge=0, description="fixes this far outside the map are refused, m"
@@ -128,6 +135,29 @@ class WorkerStats:
     expired: int = 0  # pseudonyms forgotten after track_timeout of silence
     evicted: int = 0  # pseudonyms forgotten because max_pseudonyms were held
     engine_seconds: float = 0.0  # time spent in the engine (perf_counter)
+
+    @property
+    def refusals(self) -> dict[str, int]:
+        """The fixes refused, by the kind of their error reply."""
+        return {
+            "invalid": self.invalid,
+            "clock": self.clock,
+            "outside": self.outside,
+            "stale": self.refused,
+            "internal": self.failed,
+        }
+
+    def summary(self) -> str:
+        """One line: answered, and every refusal by kind.
+
+        >>> WorkerStats(answered=5, clock=2, outside=1).summary()
+        '5 answered, 3 refused (2 clock, 1 outside)'
+        """
+        kinds = {k: n for k, n in self.refusals.items() if n}
+        detail = ", ".join(f"{n} {k}" for k, n in kinds.items())
+        return f"{self.answered} answered, {sum(kinds.values())} refused" + (
+            f" ({detail})" if detail else ""
+        )
 
 
 class LaasService:

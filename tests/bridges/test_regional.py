@@ -52,8 +52,11 @@ def test_owntracks_phones_are_answered_by_two_regional_workers(hamburg_map: HdMa
             assert _wait(
                 lambda: pool.stats.answered + pool.stats.lost + pool.stats.refused >= total, 30
             )
-            answers = lambda: [m for m in inbox if m.topic.endswith("-lane")]  # noqa: E731
-            assert _wait(lambda: len(answers()) >= total, 10), len(answers())
+
+            def answers() -> int:
+                return sum(m.topic.endswith("-lane") for m in inbox)
+
+            assert _wait(lambda: answers() >= total, 10), answers()
             shares = [service.stats.answered for _, service in deployment.workers]
             stats = pool.stats
         phones.stop()

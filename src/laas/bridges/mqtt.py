@@ -5,6 +5,11 @@ for the devices' topics, and a `DevicePool` for the devices' LDM participants. p
 thread only queues each message (`ldm.transport`); the bridge's own thread decodes it
 and hands the fix to the pool, and once a second forgets the silent devices. A message
 the bridge cannot read is the device's problem: `handle` counts it and goes on.
+
+A broker's ACL that does not let the bridge read its devices' topics (or the devices
+write them) drops their messages without a word: Mosquitto grants the subscription and
+delivers nothing. So a bridge that has heard nothing `quiet_after` seconds after it
+connected says so, once, naming its account and topics.
 """
 
 from __future__ import annotations
@@ -40,9 +45,13 @@ class MqttBridge(ABC):
         *,
         name: str,
         client_id: str | None = None,
+        quiet_after: float = 60.0,
     ) -> None:
         self.pool = pool
         self.name = name
+        self.quiet_after = quiet_after
+        self.received = 0  # device messages taken from the broker
+        self._account = broker.username
         self._inbox: queue.SimpleQueue[object] = queue.SimpleQueue()
         client_id = client_id or broker.username or f"{name}-{secrets.token_hex(4)}"
         self.transport = Transport(broker, client_id=client_id, sink=self._inbox.put, name=name)
@@ -96,8 +105,21 @@ class MqttBridge(ABC):
     def forgotten(self, names: list[str]) -> None:  # noqa: B027 - optional hook
         """Devices the pool just forgot (after `track_timeout` of silence)."""
 
+    def _quiet(self) -> None:
+        """Nothing arrived since the bridge connected: say what to check."""
+        log.warning(
+            "%s: no message on %s in %g s since it connected; check that the devices "
+            "publish there and that the broker's ACL lets account %s read it and the "
+            "devices write it (deploy/security/acl-user-cluster, docs/bridges.md)",
+            self.name,
+            " ".join(self._filters),
+            self.quiet_after,
+            self._account or "(anonymous)",
+        )
+
     def _run(self) -> None:
         next_sweep = time.monotonic() + _EXPIRE_EVERY
+        quiet_at: float | None = time.monotonic() + self.quiet_after
         while True:
             try:
                 item = self._inbox.get(timeout=_EXPIRE_EVERY)
@@ -106,10 +128,15 @@ class MqttBridge(ABC):
             if item is None:
                 return
             if isinstance(item, Message):
+                self.received += 1
+                quiet_at = None
                 try:
                     self.handle(item)
                 except Exception:  # a bug for one message must not stop the bridge
                     log.exception("%s: failed on a message on %s", self.name, item.topic)
+            if quiet_at is not None and time.monotonic() >= quiet_at:
+                quiet_at = None
+                self._quiet()
             if time.monotonic() >= next_sweep:
                 next_sweep = time.monotonic() + _EXPIRE_EVERY
                 names = self.pool.expire()

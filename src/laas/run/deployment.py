@@ -7,9 +7,11 @@ Three brokers (Mosquitto processes when `mosquitto` is installed, else the embed
 broker), two LDM cores and the worker, each with its own MQTT connections. The cores
 run in this process; the worker too, or in a process of its own (`worker_process`).
 
-The worker gets a fresh identity key; both cores and every participant started with
-`trust` pin it, and participants pin the user core's key, so no broker and no core
-can read a fix or answer in the worker's name (docs/security.md).
+Its workers serve simulations, so they let a session's timestamps run up to 1000 times
+faster than real time (`WorkerConfig.max_speedup`; a `laas worker` allows only real
+time unless told). The worker gets a fresh identity key; both cores and every
+participant started with `trust` pin it, and participants pin the user core's key, so
+no broker and no core can read a fix or answer in the worker's name (docs/security.md).
 """
 
 from __future__ import annotations
@@ -26,13 +28,16 @@ from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.regions import Region, split
-from laas.service import LaasService, start_worker
+from laas.service import LaasService, WorkerConfig, start_worker
 from ldm import Core, Provider
 from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
 from ldm.hops import Hops
 from ldm.identity import SigningKey
 
-__all__ = ["BrokerChoice", "LocalDeployment"]
+__all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
+
+SIMULATION_LIMITS = WorkerConfig(max_speedup=1000.0)
+"""The workers' limits by default: simulators sped up to 1000 times real time."""
 
 BrokerChoice = Literal["auto", "embedded", "embedded-process", "mosquitto"]
 
@@ -59,6 +64,7 @@ class LocalDeployment:
         worker_process: bool = False,
         hops: Hops | None = None,
         regions: int = 1,
+        limits: WorkerConfig = SIMULATION_LIMITS,
     ) -> None:
         if worker_process and not Path(hdmap.source).is_file():
             raise ConfigError(
@@ -66,6 +72,8 @@ class LocalDeployment:
             )
         self.hdmap = hdmap
         self.config = config
+        self.limits = limits
+        """The workers' limits on their input (`laas.service.WorkerConfig`)."""
         self.kind: BrokerKind = (
             ("mosquitto" if find_mosquitto() else "embedded") if brokers == "auto" else brokers
         )
@@ -132,6 +140,7 @@ class LocalDeployment:
                             url,
                             self.hdmap,
                             self.config,
+                            self.limits,
                             self.identity,
                             self.hops is not None,
                             region,
@@ -139,7 +148,12 @@ class LocalDeployment:
                     )
                 else:
                     provider, service = start_worker(
-                        url, self.hdmap, self.config, identity=self.identity, region=region
+                        url,
+                        self.hdmap,
+                        self.config,
+                        self.limits,
+                        identity=self.identity,
+                        region=region,
                     )
                     provider.hops = self.hops
                     self.workers.append((provider, service))
@@ -191,6 +205,7 @@ class _WorkerProcess:
         url: str,
         hdmap: HdMap,
         config: EngineConfig | None,
+        limits: WorkerConfig,
         identity: SigningKey,
         hops: bool = False,
         region: Region | None = None,
@@ -205,6 +220,7 @@ class _WorkerProcess:
                 url,
                 hdmap.source,
                 config,
+                limits,
                 pem,
                 self._ready,
                 self._stop,
@@ -245,6 +261,7 @@ def _serve(
     url: str,
     map_path: str,
     config: EngineConfig | None,
+    limits: WorkerConfig,
     pem: bytes,
     ready: Any,
     stop: Any,
@@ -255,7 +272,7 @@ def _serve(
     """The worker process: serve until `stop` is set, then leave what it did."""
     identity = SigningKey.from_pem(pem)
     provider, service = start_worker(
-        url, HdMap.load(map_path), config, identity=identity, region=region
+        url, HdMap.load(map_path), config, limits, identity=identity, region=region
     )
     if hops:
         provider.hops = Hops()

@@ -114,11 +114,9 @@ class Frame:
         self._fwd: list[list[float]] = self.fwd.tolist()
         self._cum: list[float] = self.cum.tolist()
         self._lens: list[float] = self.lens.tolist()
-        self._t0: list[float] = self._t_row(0)
-        self._t1: list[float] = self._t_row(self.pieces - 1)
-
-    def _t_row(self, i: int) -> list[float]:
-        return cast(list[float], self.t[i].tolist())
+        self._t: list[list[float]] = self.t.tolist()
+        self._t0: list[float] = self._t[0]
+        self._t1: list[float] = self._t[-1]
 
     # -- scalar ------------------------------------------------------------------------------
 
@@ -242,6 +240,29 @@ class Frame:
         return min(max(bisect_right(self._cum, s) - 1, 0), self.pieces - 1)
 
     # -- vectorised --------------------------------------------------------------------------
+
+    def piece_array(self, s: FloatArray) -> npt.NDArray[np.intp]:
+        """Vectorised :meth:`piece_at`."""
+        i = np.searchsorted(self.cum, s, side="right") - 1
+        return cast(npt.NDArray[np.intp], np.clip(i, 0, self.pieces - 1))
+
+    def point_array(self, s: FloatArray, d: FloatArray) -> FloatArray:
+        """Vectorised :meth:`point`: (n,) stations and offsets -> (n, 2), the same values."""
+        i = self.piece_array(s)
+        u = (s - self.cum[i]) / self.lens[i]
+        m0, m1 = self.m[i], self.m[i + 1]
+        # P_i + u V_i + d (M_i + u (M_{i+1} - M_i))
+        x = self.p[i, 0] + u * self.v[i, 0] + d * (m0[:, 0] + u * (m1[:, 0] - m0[:, 0]))
+        y = self.p[i, 1] + u * self.v[i, 1] + d * (m0[:, 1] + u * (m1[:, 1] - m0[:, 1]))
+        # before the start and after the end: along the end tangents
+        t0, t1, n = self.t[0], self.t[-1], self.pieces
+        lo, hi = s <= 0.0, s >= self.length
+        x[lo] = self.p[0, 0] + s[lo] * t0[0] + d[lo] * t0[1]
+        y[lo] = self.p[0, 1] + s[lo] * t0[1] - d[lo] * t0[0]
+        e = s[hi] - self.length
+        x[hi] = self.p[n, 0] + e * t1[0] + d[hi] * t1[1]
+        y[hi] = self.p[n, 1] + e * t1[1] - d[hi] * t1[0]
+        return np.column_stack((x, y))
 
     def frame_array(self, xy: FloatArray, chunk: int = 2048) -> FloatArray:
         xy = np.asarray(xy, dtype=np.float64)

@@ -198,6 +198,20 @@ class Segment:
         """Vectorised :meth:`frame`: (n, 2) UTM points -> (n, 2) of (s, d)."""
         return self._f.frame_array(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
 
+    def frame_many(self, xy: npt.ArrayLike) -> FloatArray:
+        """Vectorised :meth:`frame`, the form a batch calls: (n, 2) UTM points -> (n, 2) of
+        (s, d). (The same as :meth:`frame_array`.)"""
+        return self.frame_array(xy)
+
+    def point_many(self, s: npt.ArrayLike, d: npt.ArrayLike = 0.0) -> FloatArray:
+        """Vectorised :meth:`point`: (n,) stations and offsets -> (n, 2) UTM points, the same
+        values as one at a time."""
+        st = np.asarray(s, dtype=np.float64).reshape(-1)
+        dt = np.broadcast_to(np.asarray(d, dtype=np.float64), st.shape)
+        if not (np.isfinite(st).all() and np.isfinite(dt).all()):
+            raise ValueError("stations and offsets must be finite")
+        return self._f.point_array(st, np.array(dt))
+
     def point(self, s: float, d: float = 0.0) -> tuple[float, float]:
         """The UTM point at station s and lateral offset d; the inverse of :meth:`frame`."""
         s, d = float(s), float(d)
@@ -207,11 +221,18 @@ class Segment:
 
     def tangent(self, s: float) -> FloatArray:
         """Unit (east, north) vector of the reference direction at station s."""
-        return cast(FloatArray, self._f.t[self._f.piece_at(s)].copy())
+        f = self._f
+        return np.array(f._t[f.piece_at(s)])
+
+    def tangent_many(self, s: npt.ArrayLike) -> FloatArray:
+        """Vectorised :meth:`tangent`: (n,) stations -> (n, 2)."""
+        f = self._f
+        return cast(FloatArray, f.t[f.piece_array(np.asarray(s, dtype=np.float64).reshape(-1))])
 
     def heading(self, s: float) -> float:
         """Reference direction at s in degrees from (grid) north, clockwise, in [0, 360)."""
-        tx, ty = self._f.t[self._f.piece_at(s)]
+        f = self._f
+        tx, ty = f._t[f.piece_at(s)]
         h = math.degrees(math.atan2(tx, ty)) % 360.0
         return 0.0 if h >= 360.0 else h
 
@@ -223,10 +244,15 @@ class Segment:
         if not math.isfinite(s):
             raise ValueError(f"station must be finite, got {s}")
         table = self._table
-        pos = min(max(s, 0.0), self.length) / self.length * (len(table) - 1)
+        if table.shape[1] == 1:  # one lane: d = 0 everywhere
+            return np.zeros(1)
+        length = self.length
+        # pos = clamp(s, 0, length) / length * (rows - 1);  d = D_i + f (D_{i+1} - D_i)
+        pos = min(max(s, 0.0), length) / length * (len(table) - 1)
         i = min(int(pos), len(table) - 2)
         f = pos - i
-        return cast(FloatArray, table[i] + f * (table[i + 1] - table[i]))
+        lo = table[i]
+        return cast(FloatArray, lo + f * (table[i + 1] - lo))
 
     def lane_offsets_many(self, s: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`lane_offsets`: (n,) stations -> (n, L), the same values."""
@@ -384,7 +410,10 @@ class HdMap:
         self.source = source
         self._segments = MappingProxyType(by_id)
         self._sorted = sorted(segs, key=lambda seg: seg.id)  # tree index order = id order
-        self._tree = STRtree([seg.area for seg in self._sorted])
+        self._areas = np.array([seg.area for seg in self._sorted], object)
+        self._tree = STRtree(self._areas)
+        self._index = {seg.id: k for k, seg in enumerate(self._sorted)}
+        self._stack: FrameStack | None = None  # every frame, for frame_many; on first use
         b = shapely.bounds(np.array([seg.area for seg in segs], object))
         self._bounds = (
             float(b[:, 0].min()),
@@ -446,8 +475,53 @@ class HdMap:
         return self._sorted[int(np.min(near))]
 
     def segments_near(self, x: float, y: float, radius: float) -> list[Segment]:
-        """Segments whose surface is within ``radius`` metres of (x, y), nearest first."""
+        """Segments whose surface is within ``radius`` metres of (x, y), nearest first (ties
+        by id)."""
         pt = Point(x, y)
         idx = self._tree.query(pt, predicate="dwithin", distance=radius)
-        found = [self._sorted[int(i)] for i in idx]
-        return sorted(found, key=lambda seg: (float(seg.area.distance(pt)), seg.id))
+        if len(idx) == 0:
+            return []
+        dist = shapely.distance(self._areas[idx], pt)
+        order = np.lexsort((idx, dist))  # tree index order is id order
+        return [self._sorted[int(i)] for i in idx[order]]
+
+    # -- many points at once -----------------------------------------------------------------
+
+    def locate_many(self, xy: npt.ArrayLike, max_distance: float = 15.0) -> list[Segment | None]:
+        """:meth:`locate` of each of (n, 2) UTM points, the same answers, the tree searched
+        once for all of them."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out: list[Segment | None] = [None] * len(pts)
+        if not len(pts):
+            return out
+        geoms = shapely.points(pts)
+        inp, hit = self._tree.query(geoms, predicate="intersects")
+        order = np.lexsort((hit, inp))
+        inp, hit = inp[order], hit[order]
+        count = np.bincount(inp, minlength=len(pts))
+        first = np.searchsorted(inp, np.arange(len(pts)))  # hits of point k: first[k]..
+        for k in np.flatnonzero(count == 1).tolist():
+            out[k] = self._sorted[int(hit[first[k]])]
+        for k in np.flatnonzero(count > 1).tolist():  # the deepest, ties by id
+            x, y = float(pts[k, 0]), float(pts[k, 1])
+            cands = [self._sorted[int(i)] for i in hit[first[k] : first[k] + count[k]]]
+            out[k] = min(cands, key=lambda seg: (-seg._depth(x, y), seg.id))
+        none = np.flatnonzero(count == 0)
+        if max_distance > 0.0 and len(none):
+            near_in, near = self._tree.query_nearest(
+                geoms[none], max_distance=max_distance, all_matches=True
+            )
+            best = np.full(len(none), len(self._sorted))
+            np.minimum.at(best, near_in, near)  # the nearest, ties by id
+            for k, b in zip(none.tolist(), best.tolist(), strict=True):
+                if b < len(self._sorted):
+                    out[k] = self._sorted[b]
+        return out
+
+    def frame_many(self, xy: npt.ArrayLike, segments: Sequence[Segment]) -> FloatArray:
+        """(s, d) of point k in the frame of segments[k]: (n, 2) -> (n, 2), each the value of
+        ``segments[k].frame_array``, all frames in one pass (:class:`FrameStack`)."""
+        if self._stack is None:
+            self._stack = FrameStack([shapely.get_coordinates(s.reference) for s in self._sorted])
+        which = [self._index[seg.id] for seg in segments]
+        return self._stack.frame_many(xy, which)

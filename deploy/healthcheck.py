@@ -37,9 +37,9 @@ from pathlib import Path
 
 from ldm import BrokerSettings, LdmError
 from ldm.config import build
-from ldm.messages import CoreStatus
-from ldm.topics import announce, bb_core
 from ldm.transport import Event, Message, Transport
+from ldm.wire.messages import CoreStatus
+from ldm.wire.topics import announce, bb_core
 
 
 def retained(broker: BrokerSettings | str, topic: str, timeout: float) -> bytes | None:

@@ -20,8 +20,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
-from ldm.broker import read_line
-from ldm.brokers import RunningBroker, find_mosquitto, start_broker, wait_for
+from ldm.local.brokers import RunningBroker, find_mosquitto, start_broker, wait_for
+from ldm.local.embedded import read_line
 
 from .helpers import fix_on
 

@@ -17,7 +17,7 @@ from jsonschema import Draft7Validator  # type: ignore[import-untyped]
 
 from laas.cli import main
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement
-from ldm import topics
+from ldm.wire import topics
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENT = ROOT / "docs" / "asyncapi.json"

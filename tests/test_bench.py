@@ -22,7 +22,7 @@ from laas.run.bench import (
     run_bench,
 )
 from laas.sim.scenario import ErrorModel, simulate
-from ldm.pytest_plugin import need_mosquitto
+from ldm.local.pytest_plugin import need_mosquitto
 
 
 @pytest.mark.slow

@@ -34,9 +34,9 @@ from typing import Any
 import pytest
 import yaml  # type: ignore[import-untyped]
 
-from ldm.brokers import find_mosquitto, free_port
 from ldm.config import CoreConfig
-from ldm.pytest_plugin import need_mosquitto
+from ldm.local.brokers import find_mosquitto, free_port
+from ldm.local.pytest_plugin import need_mosquitto
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
@@ -473,7 +473,7 @@ def test_the_cluster_profile_runs_three_nats_nodes_and_regional_workers_with_sta
     the values compose gives each node), a service core and two regional workers with a
     standby each, all given every node; each command is one the CLI takes."""
     from laas.cli import build_parser
-    from ldm.nats import find_nats_server
+    from ldm.local.nats import find_nats_server
 
     services = load_compose(SETTINGS)
     cluster = {n for n, s in services.items() if s.get("profiles") == ["cluster"]}

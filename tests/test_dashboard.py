@@ -32,7 +32,7 @@ from laas.run.deployment import LocalDeployment
 from laas.run.participants import LiveRun, run_participants
 from laas.sim.scenario import Trace, hamburg_scenario, simulate
 from ldm import Core, Participant
-from ldm.brokers import RunningBroker
+from ldm.local.brokers import RunningBroker
 
 from .operations import LAAS, Child, brokers, get, hamburg_fixes, wait_until
 

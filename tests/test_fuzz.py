@@ -30,16 +30,16 @@ from laas.models import GpsMeasurement
 from laas.service import LaasService
 from laas.sim.trace import TraceLine, read_trace
 from ldm import Core, KeyPair, LdmError, Participant, Provider, Request, ServiceSpec
-from ldm.crypto import aad
-from ldm.messages import (
+from ldm.client.participant import Session
+from ldm.security.crypto import aad
+from ldm.transport import Message
+from ldm.wire.messages import (
     Announcement,
     Envelope,
     ServiceDescription,
     SessionGrant,
     SessionRequest,
 )
-from ldm.participant import Session
-from ldm.transport import Message
 
 BATCH = 25
 FUZZ = settings(

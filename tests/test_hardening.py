@@ -33,18 +33,18 @@ from ldm import (
     ServiceSpec,
     Session,
 )
-from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.config import BrokerSettings
-from ldm.crypto import aad
-from ldm.messages import (
+from ldm.local.brokers import MosquittoBroker, free_port, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.security.crypto import aad
+from ldm.transport import Event, Message, Transport
+from ldm.wire.messages import (
     Announcement,
     Envelope,
     ServiceDescription,
     ServiceList,
     SessionRequest,
 )
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Event, Message, Transport
 
 from .helpers import Clock
 from .ldm.deployment import ECHO, EchoService, has_service

@@ -49,13 +49,46 @@ def test_the_ldm_never_imports_laas() -> None:
     assert _offending("ldm", ("laas",)) == []
 
 
-def test_paho_lives_in_the_transport_module_only() -> None:
+def test_paho_lives_in_the_transport_package_only() -> None:
     users = [
         str(p.relative_to(SRC))
         for p in sorted(SRC.rglob("*.py"))
         if any(n == "paho" or n.startswith("paho.") for n in _imports(p))
     ]
-    assert users == ["ldm/transport.py"]
+    assert users == ["ldm/transport/mqtt.py"]
+
+
+# What each of the LDM's subpackages may import from the rest of the LDM: the wire and
+# the keys at the bottom, the transport beside them, the three roles (client, core,
+# provider) on top of those and never of each other, then operations and local brokers.
+LDM_LAYERS = {
+    "wire": ("errors", "security.identity"),
+    "security": ("errors", "wire"),
+    "transport": ("config", "errors"),
+    "client": ("config", "errors", "security", "transport", "wire"),
+    "core": ("config", "errors", "ops.hops", "security", "transport", "wire"),
+    "provider": ("config", "errors", "ops.hops", "security", "transport", "wire"),
+    "ops": ("config", "core", "errors", "provider", "transport"),
+    "local": ("client", "config", "core", "errors", "provider", "transport", "wire"),
+}
+
+
+@pytest.mark.parametrize("package", sorted(LDM_LAYERS))
+def test_each_ldm_package_imports_only_the_layers_below_it(package: str) -> None:
+    allowed = tuple(f"ldm.{name}" for name in (package, *LDM_LAYERS[package]))
+    bad = [
+        f"{path.relative_to(SRC)} imports {name}"
+        for path in sorted((SRC / "ldm" / package).rglob("*.py"))
+        for name in sorted(_imports(path))
+        if name.startswith("ldm.")
+        and not any(name == a or name.startswith(a + ".") for a in allowed)
+    ]
+    assert bad == []
+
+
+def test_the_ldm_tree_is_its_architecture() -> None:
+    top = sorted(p.name for p in (SRC / "ldm").iterdir() if not p.name.startswith("__"))
+    assert top == [*sorted(["cli.py", "config.py", "errors.py", "py.typed", *LDM_LAYERS])]
 
 
 def test_importing_the_engine_loads_no_transport() -> None:

@@ -13,8 +13,8 @@ from laas.run.participants import run_participants
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
-from ldm.brokers import BrokerKind
-from ldm.pytest_plugin import broker_kind
+from ldm.local.brokers import BrokerKind
+from ldm.local.pytest_plugin import broker_kind
 
 from .helpers import small_map
 

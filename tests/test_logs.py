@@ -14,7 +14,7 @@ import pytest
 
 from laas.map.hdmap import HdMap
 from ldm import Participant
-from ldm.logs import JsonFormatter, configure, event_of
+from ldm.ops.logs import JsonFormatter, configure, event_of
 
 from .operations import LAAS, LDM, Child, brokers, hamburg_fixes, ready, wait_until
 

@@ -18,9 +18,9 @@ from laas.map.hdmap import HdMap
 from laas.metrics import ENGINE_COUNTERS, FIX_OUTCOMES
 from laas.service import WorkerStats
 from ldm import BrokerSettings, CoreStats, Participant, ProviderStats
-from ldm.broker import EmbeddedBroker
-from ldm.brokers import free_port
-from ldm.metrics import CORE_COUNTERS, CORE_OUTCOMES, PROVIDER_COUNTERS, PROVIDER_INPUTS
+from ldm.local.brokers import free_port
+from ldm.local.embedded import EmbeddedBroker
+from ldm.ops.metrics import CORE_COUNTERS, CORE_OUTCOMES, PROVIDER_COUNTERS, PROVIDER_INPUTS
 from ldm.transport import Transport
 
 from .operations import (

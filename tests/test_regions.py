@@ -17,10 +17,10 @@ from laas.service import service_spec
 from laas.sim.scenario import hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
 from ldm import BrokerSettings
-from ldm.brokers import BrokerKind
-from ldm.messages import ServiceDescription
-from ldm.pytest_plugin import broker_kind
-from ldm.routing import covers, depth
+from ldm.client.routing import covers, depth
+from ldm.local.brokers import BrokerKind
+from ldm.local.pytest_plugin import broker_kind
+from ldm.wire.messages import ServiceDescription
 
 __all__ = ["broker_kind"]
 
@@ -102,7 +102,7 @@ def test_a_standby_takes_over_when_the_worker_dies(
 
     from laas.service import start_worker
     from ldm import Participant, RoutedSession
-    from ldm.standby import wait_until_vacant
+    from ldm.provider.standby import wait_until_vacant
 
     scenario = hamburg_scenario()
     trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
@@ -187,9 +187,9 @@ def test_a_worker_node_serves_the_map_as_regions_in_processes(tmp_path: Path) ->
     import time
 
     from ldm import EmbeddedBroker
-    from ldm.brokers import wait_for
-    from ldm.messages import Announcement
+    from ldm.local.brokers import wait_for
     from ldm.transport import Event, Message, Transport
+    from ldm.wire.messages import Announcement
 
     broker = EmbeddedBroker(port=0).start()
     seen: dict[str, bytes] = {}

@@ -105,7 +105,7 @@ if command -v ldm >/dev/null; then
   ldm=(ldm)
 elif [ -x "$root/.venv/bin/ldm" ]; then
   ldm=("$root/.venv/bin/ldm")
-elif python3 -c 'import ldm.identity' 2>/dev/null; then
+elif python3 -c 'import ldm.security.identity' 2>/dev/null; then
   ldm=(python3 -m ldm)
 else
   echo "$0: the ldm command is not installed; run 'pip install -e .' in $root" >&2

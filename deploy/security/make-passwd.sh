@@ -22,7 +22,7 @@ if command -v ldm >/dev/null; then
   ldm=(ldm)
 elif [ -x "$root/.venv/bin/ldm" ]; then
   ldm=("$root/.venv/bin/ldm")
-elif python3 -c 'import ldm.passwd' 2>/dev/null; then
+elif python3 -c 'import ldm.ops.passwd' 2>/dev/null; then
   ldm=(python3 -m ldm)
 else
   echo "$0: the ldm command is not installed; run 'pip install -e .' in $root" \

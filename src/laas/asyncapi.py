@@ -13,7 +13,7 @@ from typing import Any
 
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement
 from laas.service import SERVICE_NAME
-from ldm.asyncapi import ServiceApi, document, render
+from ldm.wire.asyncapi import ServiceApi, document, render
 
 __all__ = ["DOCUMENT", "laas_document", "laas_document_text", "write_document"]
 

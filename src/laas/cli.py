@@ -18,11 +18,11 @@ from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
 from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
-from ldm.logs import configure
+from ldm.ops.logs import configure
 
 if TYPE_CHECKING:
     from laas.sim.scenario import Scenario
-    from ldm.metrics import Metrics
+    from ldm.ops.metrics import Metrics
 
 __all__ = ["main"]
 
@@ -298,7 +298,7 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
         k, count = parse_region(a.region)
         region = split(hdmap, count, overlap=a.overlap)[k]
     if a.standby:
-        from ldm.standby import wait_until_vacant
+        from ldm.provider.standby import wait_until_vacant
 
         if a.identity is None:
             raise ConfigError(

@@ -26,7 +26,7 @@ from prometheus_client.registry import Collector
 from laas.engine.engine import Engine
 from laas.service import LaasService
 from ldm import Provider
-from ldm.metrics import Metrics
+from ldm.ops.metrics import Metrics
 
 __all__ = ["ENGINE_COUNTERS", "FIX_OUTCOMES", "WorkerCollector", "watch_worker"]
 

@@ -12,10 +12,10 @@ participants and services. The LDM knows nothing about positioning.
     EmbeddedBroker  an in-process MQTT broker for tests and zero-install runs
 """
 
-from ldm.broker import BrokerProcess, EmbeddedBroker
+from ldm.client.participant import Participant, Session
+from ldm.client.routing import RoutedSession
 from ldm.config import BrokerSettings, CoreConfig, ParticipantConfig, ProviderConfig
-from ldm.core import Core, CoreStats
-from ldm.crypto import KeyPair
+from ldm.core.core import Core, CoreStats
 from ldm.errors import (
     ConfigError,
     ConnectError,
@@ -27,12 +27,12 @@ from ldm.errors import (
     SessionError,
     TrustError,
 )
-from ldm.identity import SigningKey
-from ldm.messages import ServiceDescription, ServiceSpec, SessionGrant
-from ldm.participant import Participant, Session
-from ldm.provider import BatchHandler, Handler, Provider, ProviderStats, Request
-from ldm.routing import RoutedSession
-from ldm.trust import Trust
+from ldm.local.embedded import BrokerProcess, EmbeddedBroker
+from ldm.provider.provider import BatchHandler, Handler, Provider, ProviderStats, Request
+from ldm.security.crypto import KeyPair
+from ldm.security.identity import SigningKey
+from ldm.security.trust import Trust
+from ldm.wire.messages import ServiceDescription, ServiceSpec, SessionGrant
 
 __all__ = [
     "BatchHandler",

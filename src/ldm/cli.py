@@ -25,14 +25,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ldm.broker import EmbeddedBroker
 from ldm.config import BrokerSettings, CoreConfig, build
-from ldm.core import Core
+from ldm.core.core import Core
 from ldm.errors import ConfigError, LdmError, PasswordFileError
-from ldm.identity import SigningKey, endorse
-from ldm.logs import LOG_FORMATS, configure
-from ldm.metrics import Metrics, MetricsServer
-from ldm.passwd import random_password, set_passwords
+from ldm.local.embedded import EmbeddedBroker
+from ldm.ops.logs import LOG_FORMATS, configure
+from ldm.ops.metrics import Metrics, MetricsServer
+from ldm.ops.passwd import random_password, set_passwords
+from ldm.security.identity import SigningKey, endorse
 
 __all__ = [
     "broker_settings",
@@ -357,7 +357,7 @@ def start_metrics(args: argparse.Namespace, who: str) -> tuple[Metrics, MetricsS
 
 def _nats_cluster(args: argparse.Namespace) -> int:
     """`ldm nats-cluster`: stdout carries the URL and the generated passwords."""
-    from ldm.nats import NatsCluster  # only this command needs it
+    from ldm.local.nats import NatsCluster  # only this command needs it
 
     if args.nodes < 1:
         raise ConfigError("--nodes must be at least 1")

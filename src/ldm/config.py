@@ -23,7 +23,7 @@ from pydantic import (
 )
 
 from ldm.errors import ConfigError
-from ldm.topics import NAME_PATTERN
+from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
     "BrokerSettings",
@@ -252,6 +252,9 @@ class CoreConfig(_Settings):
     max_clock_skew: float = Field(default=30.0, gt=0)
     max_queue: int = Field(default=100_000, ge=1)
     """Messages waiting for the core's worker; more are dropped (``dropped_overload``)."""
+    max_batch: int = Field(default=512, ge=1)
+    """Messages the core's worker takes at once from what waited; the envelopes among
+    them bound for one provider or core leave as one batch (`ldm.wire.batch`)."""
     retain_sweep: float = Field(default=5.0, gt=0)
     """Seconds between re-subscriptions of the participant filter, after which the core
     clears what participants left retained (see above)."""
@@ -304,7 +307,8 @@ class ProviderConfig(_Settings):
     client_id: str | None = None
     max_queue: int = Field(default=10_000, ge=1)
     max_batch: int = Field(default=64, ge=1)
-    """With a batch handler: at most this many waiting inputs are handed over at once."""
+    """At most this many waiting inputs are taken at once: a batch handler gets them in
+    one call; the replies to them leave together (`ldm.wire.batch`)."""
     max_payload: int = Field(default=64 * 1024, ge=256)
     cipher_cache: int = Field(default=50_000, ge=1)
     identity_file: Path | None = None

@@ -24,7 +24,7 @@ from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, GpsMeasurement
 from laas.run.deployment import LocalDeployment
 from ldm import BrokerSettings
-from ldm.brokers import free_port, wait_for
+from ldm.local.brokers import free_port, wait_for
 from ldm.transport import Event, Message, Transport
 
 

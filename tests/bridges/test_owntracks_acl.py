@@ -19,9 +19,9 @@ from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
 from laas.service import start_worker
 from ldm import Core
-from ldm.brokers import MosquittoBroker, wait_for
 from ldm.config import BrokerSettings
-from ldm.pytest_plugin import need_mosquitto
+from ldm.local.brokers import MosquittoBroker, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
 from ldm.transport import Connected, Event, Message, Transport
 
 from ..test_hardening import CORE, SECURITY, password_file

@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from ldm.pytest_plugin import broker_factory, broker_kind, mqtt_broker
+from ldm.local.pytest_plugin import broker_factory, broker_kind, mqtt_broker
 
 __all__ = ["broker_factory", "broker_kind", "mqtt_broker"]

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ldm import Core, Participant, Provider, Request, ServiceSpec
-from ldm.brokers import RunningBroker, wait_for
 from ldm.config import BrokerSettings
-from ldm.transport import Event, Message, Transport
+from ldm.local.brokers import RunningBroker, wait_for
+from ldm.transport.mqtt import Event, Message, Transport
 
 FAST = {
     "rotation_period": 0.5,

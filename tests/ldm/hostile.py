@@ -50,12 +50,14 @@ from pathlib import Path
 from typing import Any, Literal, Self, TypeVar
 
 from ldm import Core, KeyPair, Participant, Provider, Session
-from ldm.brokers import MosquittoBroker, wait_for
 from ldm.config import BrokerSettings, CoreConfig, ParticipantConfig, ProviderConfig, build
-from ldm.crypto import SessionCipher, aad
 from ldm.errors import CryptoError
-from ldm.identity import SigningKey
-from ldm.messages import (
+from ldm.local.brokers import MosquittoBroker, wait_for
+from ldm.ops.passwd import random_password, set_passwords
+from ldm.security.crypto import SessionCipher, aad
+from ldm.security.identity import SigningKey
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import (
     Announcement,
     Envelope,
     ServiceDescription,
@@ -64,8 +66,6 @@ from ldm.messages import (
     SessionNotice,
     SessionRequest,
 )
-from ldm.passwd import random_password, set_passwords
-from ldm.transport import Event, Message, Transport
 
 from .deployment import ECHO, FAST, EchoService
 

@@ -7,11 +7,11 @@ import time
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
-from ldm.brokers import MosquittoBroker, mosquitto_acl, wait_for
 from ldm.config import BrokerSettings
-from ldm.messages import Envelope, SessionRequest
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Event, Message, Transport
+from ldm.local.brokers import MosquittoBroker, mosquitto_acl, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import Envelope, SessionRequest
 
 from .deployment import ECHO, EchoService, has_service
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from ldm import BrokerProcess, EmbeddedBroker
-from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.config import BrokerSettings
-from ldm.transport import Connected, Event, Message, Transport
+from ldm.local.brokers import MosquittoBroker, free_port, wait_for
+from ldm.transport.mqtt import Connected, Event, Message, Transport
 
 
 def client(url: str, name: str, events: list[Event]) -> Transport:
@@ -92,7 +92,7 @@ def test_broker_process_serves_and_restarts_on_its_port() -> None:
 
 @pytest.mark.mosquitto
 def test_mosquitto_config_has_nodelay_and_a_free_port() -> None:
-    from ldm.pytest_plugin import need_mosquitto
+    from ldm.local.pytest_plugin import need_mosquitto
 
     need_mosquitto()
     with MosquittoBroker() as broker:
@@ -109,7 +109,7 @@ def test_missing_mosquitto_skips_or_fails_when_required(tmp_path: Path) -> None:
     test_file.write_text(
         textwrap.dedent(
             """
-            from ldm.pytest_plugin import broker_kind  # noqa: F401
+            from ldm.local.pytest_plugin import broker_kind  # noqa: F401
 
             def test_kind(broker_kind):
                 assert broker_kind in ("embedded", "mosquitto")

@@ -8,8 +8,8 @@ import subprocess
 import sys
 
 from ldm import Participant, Provider, ServiceSpec
-from ldm.broker import read_line
-from ldm.brokers import wait_for
+from ldm.local.brokers import wait_for
+from ldm.local.embedded import read_line
 
 from .deployment import has_service
 

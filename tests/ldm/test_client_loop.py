@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import threading
 
-from ldm.brokers import RunningBroker, wait_for
 from ldm.config import BrokerSettings
-from ldm.transport import ClientLoop, Connected, Event, Message, Transport
+from ldm.local.brokers import RunningBroker, wait_for
+from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
 
 
 def _messages(events: list[Event]) -> list[Message]:

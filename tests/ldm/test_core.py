@@ -9,11 +9,11 @@ from collections.abc import Iterator
 import pytest
 
 from ldm import Core, KeyPair, Provider
-from ldm.brokers import MosquittoBroker, wait_for
 from ldm.config import BrokerSettings
-from ldm.messages import Envelope, SessionNotice, SessionRequest
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Event, Message, Transport
+from ldm.local.brokers import MosquittoBroker, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import Envelope, SessionNotice, SessionRequest
 
 from .deployment import ECHO, EchoService
 

@@ -9,10 +9,10 @@ from typing import Any
 import pytest
 
 from ldm import Core, LdmError
-from ldm.brokers import wait_for
+from ldm.client.participant import Session
 from ldm.config import BrokerSettings
-from ldm.participant import Session
-from ldm.transport import Connected, Event, Message, Transport
+from ldm.local.brokers import wait_for
+from ldm.transport.mqtt import Connected, Event, Message, Transport
 
 from .deployment import FAST, deploy, echo_provider, has_service
 

@@ -23,10 +23,10 @@ from collections.abc import Iterator
 import pytest
 
 from ldm import LdmError, ServiceNotFound
-from ldm.brokers import wait_for
 from ldm.config import CoreConfig, build
-from ldm.messages import Announcement, ServiceDescription, ServiceList
-from ldm.pytest_plugin import need_mosquitto
+from ldm.local.brokers import wait_for
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.wire.messages import Announcement, ServiceDescription, ServiceList
 
 from .deployment import FAST
 from .hostile import (

@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 
 from ldm import ConfigError, Core, KeyPair, Participant, SigningKey, Trust, TrustError
-from ldm.brokers import RunningBroker, wait_for
 from ldm.cli import main as ldm_main
 from ldm.config import BrokerSettings
-from ldm.identity import endorse
-from ldm.messages import Announcement, ServiceDescription, ServiceList, SessionNotice
-from ldm.transport import Event, Message, Transport
+from ldm.local.brokers import RunningBroker, wait_for
+from ldm.security.identity import endorse
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import Announcement, ServiceDescription, ServiceList, SessionNotice
 
 from .deployment import EchoService, echo_provider, has_service
 

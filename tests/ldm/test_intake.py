@@ -20,15 +20,15 @@ from dataclasses import asdict
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
-from ldm._worker import Worker
-from ldm.brokers import MosquittoBroker, RunningBroker, mosquitto_acl, start_broker, wait_for
 from ldm.config import BrokerSettings
-from ldm.core import CoreStats
-from ldm.floodbench import format_report, run_flood_bench
-from ldm.intake import FairQueue
-from ldm.messages import Announcement, Envelope, ServiceDescription, SessionRequest
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Event, Message, Transport
+from ldm.core.core import CoreStats
+from ldm.local.brokers import MosquittoBroker, RunningBroker, mosquitto_acl, start_broker, wait_for
+from ldm.local.floodbench import format_report, run_flood_bench
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.transport.intake import FairQueue
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.transport.worker import Worker
+from ldm.wire.messages import Announcement, Envelope, ServiceDescription, SessionRequest
 
 from .deployment import ECHO, EchoService, has_service
 

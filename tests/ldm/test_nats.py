@@ -22,18 +22,18 @@ from ldm import (
     RequestTimeout,
     ServiceNotFound,
 )
-from ldm.broker import EmbeddedBroker
-from ldm.brokers import free_port, wait_for
+from ldm.client.participant import Session
 from ldm.config import BrokerSettings, build
-from ldm.nats import (
+from ldm.local.brokers import free_port, wait_for
+from ldm.local.embedded import EmbeddedBroker
+from ldm.local.nats import (
     MIN_VERSION,
     NatsCluster,
     find_nats_server,
     nats_required,
     nats_server_version,
 )
-from ldm.participant import Session
-from ldm.transport import Event, Message, Transport, Will
+from ldm.transport.mqtt import Event, Message, Transport, Will
 
 from .deployment import ECHO, EchoService, has_service
 

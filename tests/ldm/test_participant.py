@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 from ldm import ConnectError, Core, Participant, Provider, Request, SessionError
-from ldm.brokers import MosquittoBroker, wait_for
-from ldm.messages import Envelope
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Message
+from ldm.local.brokers import MosquittoBroker, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.transport.mqtt import Message
+from ldm.wire.messages import Envelope
 
 from .deployment import ECHO, Sniffer, has_service
 
@@ -128,12 +128,13 @@ def test_a_resent_request_gets_a_new_correlation_id_and_qos_1_holds_on_every_hop
         assert first.pseudonym != again.pseudonym
         assert first.correlation_id != again.correlation_id
 
-        # Core data_qos=1 holds on every hop, though the provider was given no QoS.
+        # Core data_qos=1 holds on every hop (single messages and batches), though the
+        # provider was given no QoS.
         def sniffed() -> list[Message]:
             return [
                 m
                 for m in cluster.sniffer.snapshot()
-                if "/data/" in m.topic or "/echo/in/" in m.topic or "/echo/out/" in m.topic
+                if "/data/" in m.topic or "/echo/in" in m.topic or "/echo/out" in m.topic
             ]
 
         # The sniffer is another client: its copy of the last reply may trail the reply.

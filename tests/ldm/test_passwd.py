@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from ldm.brokers import MosquittoBroker, find_mosquitto, mosquitto_required
 from ldm.cli import main
 from ldm.config import BrokerSettings
 from ldm.errors import LdmError, PasswordFileError
-from ldm.passwd import check_user, hash_password, password_line, set_passwords, verify
-from ldm.pytest_plugin import need_mosquitto
-from ldm.transport import Transport
+from ldm.local.brokers import MosquittoBroker, find_mosquitto, mosquitto_required
+from ldm.local.pytest_plugin import need_mosquitto
+from ldm.ops.passwd import check_user, hash_password, password_line, set_passwords, verify
+from ldm.transport.mqtt import Transport
 
 ROOT = Path(__file__).resolve().parents[2]
 MAKE_PASSWD = ROOT / "deploy" / "security" / "make-passwd.sh"

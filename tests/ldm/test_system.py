@@ -14,10 +14,11 @@ from typing import Any
 import pytest
 
 from ldm import Core, Participant, Provider, Request, ServiceNotFound
-from ldm.brokers import wait_for
 from ldm.config import BrokerSettings
-from ldm.messages import Envelope, ServiceList
-from ldm.transport import Connected, Message, Transport
+from ldm.local.brokers import wait_for
+from ldm.transport.mqtt import Connected, Message, Transport
+from ldm.wire import batch, topics
+from ldm.wire.messages import Envelope, ServiceList
 
 from .deployment import (
     ECHO,
@@ -111,22 +112,35 @@ def test_full_exchange_across_three_brokers(deployment: Deployment) -> None:
     check_privacy(d, participants)
 
 
+def envelopes(messages: Sequence[Message]) -> list[tuple[str, str, bytes]]:
+    """Every envelope between cores and providers in `messages`, single or in a batch:
+    (kind of its single topic, pseudonym, envelope)."""
+    found: list[tuple[str, str, bytes]] = []
+    for m in messages:
+        topic = topics.parse(m.topic)
+        if topic.pseudonym:
+            found.append((topic.kind, topic.pseudonym, m.payload))
+        elif topic.kind.endswith("_batch"):
+            entries, bad = batch.decode(m.payload)
+            assert bad == 0, f"a malformed batch on {m.topic}"
+            found += [(topic.kind.removesuffix("_batch"), p, e) for p, e in entries]
+    return found
+
+
 def check_privacy(d: Deployment, participants: list[Participant]) -> None:
     """Nothing on the backbone or service-cluster broker names or reveals a participant."""
     forbidden = [cid for cid, _ in CLIENTS] + [u for _, u in CLIENTS if u] + [PLAINTEXT]
     for sniffer in d.sniffers:
         messages = sniffer.snapshot()
-        data = [m for m in messages if "/in/" in m.topic or "/out/" in m.topic]
+        data = envelopes(messages)
         assert len(data) > 50, f"{sniffer.transport.name}: sniffer saw too little to judge"
         for m in messages:
             blob = m.topic.encode() + b" " + m.payload
             for word in forbidden:
                 assert word.encode() not in blob, f"{word!r} leaked on {m.topic}"
         # Unlinkable rotation: one key per pseudonym and one pseudonym per key.
-        inputs = [m for m in data if m.topic.startswith("ldm/svc/echo/in/")]
-        pairs = {
-            (m.topic.rsplit("/", 1)[1], Envelope.model_validate_json(m.payload).k) for m in inputs
-        }
+        inputs = [(kind, p, e) for kind, p, e in data if kind == "provider_input"]
+        pairs = {(p, Envelope.model_validate_json(e).k) for _, p, e in inputs}
         if inputs:
             assert len({p for p, _ in pairs}) == len(pairs) == len({k for _, k in pairs})
     assert {p.client_id for p in participants} == {cid for cid, _ in CLIENTS}

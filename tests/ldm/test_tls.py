@@ -13,9 +13,9 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
 from ldm import Core, Participant, Provider
-from ldm.brokers import MosquittoBroker, free_port, wait_for
 from ldm.config import BrokerSettings
-from ldm.pytest_plugin import need_mosquitto
+from ldm.local.brokers import MosquittoBroker, free_port, wait_for
+from ldm.local.pytest_plugin import need_mosquitto
 
 from .deployment import ECHO, EchoService, has_service
 

@@ -15,10 +15,10 @@ from pydantic import ValidationError
 import ldm
 from ldm import ConfigError, CoreConfig, CryptoError, KeyPair, Provider, ServiceSpec
 from ldm.config import BrokerSettings, build
-from ldm.crypto import aad
-from ldm.messages import Envelope, SessionNotice
-from ldm.topics import check_name
-from ldm.transport import Event, Message, Transport
+from ldm.security.crypto import aad
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import Envelope, SessionNotice
+from ldm.wire.topics import check_name
 
 
 def test_public_api_is_pinned() -> None:
@@ -218,8 +218,8 @@ def test_a_message_on_a_topic_not_subscribed_to_never_reaches_the_owner() -> Non
 
 
 def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
-    from ldm._worker import Worker
-    from ldm.brokers import wait_for
+    from ldm.local.brokers import wait_for
+    from ldm.transport.worker import Worker
 
     entered, release = threading.Event(), threading.Event()
 
@@ -246,8 +246,8 @@ def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
 
 
 def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> None:
-    from ldm._worker import Worker
-    from ldm.transport import Connected, Event, Message
+    from ldm.transport.mqtt import Connected, Event, Message
+    from ldm.transport.worker import Worker
 
     class Recorder(Worker[Event]):
         dropped = 0
@@ -266,7 +266,7 @@ def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> Non
     worker.sink(message)  # past the limit: dropped and counted
     worker.sink(Connected("broker"))  # a reconnect is never dropped
     worker.start_worker()
-    from ldm.brokers import wait_for
+    from ldm.local.brokers import wait_for
 
     assert wait_for(lambda: len(worker.seen) == 2, 5)
     worker.stop_worker()

@@ -18,7 +18,7 @@ from laas.models import CorrectedPosition
 from ldm import BrokerSettings
 from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
-from ldm.logs import configure
+from ldm.ops.logs import configure
 
 __all__ = ["add_bridge_commands"]
 

@@ -21,7 +21,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from laas.bridges.pool import DevicePool
-from ldm.metrics import Check, Metrics
+from ldm.ops.metrics import Check, Metrics
 
 __all__ = ["BridgeCollector", "watch_bridge"]
 

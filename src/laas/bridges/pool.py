@@ -39,7 +39,7 @@ from laas.errors import LaasError
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.service import SERVICE_NAME
 from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound
-from ldm.topics import NAME_PATTERN
+from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
     "Answer",

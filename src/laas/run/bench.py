@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import queue
 import secrets
 import threading
@@ -46,6 +47,7 @@ import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -71,8 +73,8 @@ from laas.sim.scenario import (
 )
 from laas.sim.score import score
 from ldm import BrokerSettings, RoutedSession, Session
-from ldm.brokers import find_mosquitto
-from ldm.hops import Hops
+from ldm.local.brokers import find_mosquitto
+from ldm.ops.hops import Hops
 from ldm.transport import Event, Message, Transport
 
 __all__ = [
@@ -187,6 +189,10 @@ class BenchReport:
     cpu_cores: float = math.nan  # CPU s per s of sending, the process of the two cores
     stages: dict[str, Latency] = field(default_factory=dict)  # each stage, by `STAGES` name
     cpu_worker: float = math.nan  # CPU s of the worker process while it served
+    cpu: dict[str, float] = field(default_factory=dict)
+    """CPU s of each kind of process over the load (from /proc), brokers included:
+    ``participants``, ``cores`` (this process: the two cores, and the bench's own
+    loop), ``worker``, ``brokers`` (all three), ``echo``; empty without /proc."""
     privacy: list[PrivacyRun] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
 
@@ -205,8 +211,12 @@ class BenchReport:
         return self.ldm.p50 / self.bare.p50 if self.bare.p50 > 0 else math.nan
 
     def cpu_per_1000(self) -> dict[str, float]:
-        """CPU seconds per 1,000 fixes sent, by process (the brokers not counted)."""
+        """CPU seconds per 1,000 fixes sent, by kind of process: from the operating
+        system's counters, brokers included (`cpu`), or, without /proc, from the
+        processes' own clocks (brokers not counted)."""
         k = 1000.0 / self.sent if self.sent else math.nan
+        if self.cpu:
+            return {name: seconds * k for name, seconds in self.cpu.items()}
         return {
             "participants": self.cpu_participants * self.duration * k,
             "cores": self.cpu_cores * self.duration * k,
@@ -428,6 +438,60 @@ def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
 # --- the run ------------------------------------------------------------------------
 
 
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User plus system CPU seconds of process `pid` so far (/proc/PID/stat), 0 if gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return 0.0
+    fields = stat.rsplit(")", 1)[1].split()  # after "pid (comm)": state, ppid, ...
+    return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS  # utime, stime
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of `pid` (/proc/PID/task/*/children)."""
+    found: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return found
+
+
+def _processes(echo: int | None) -> dict[int, str]:
+    """The processes of the bench on this machine that outlive the load, by pid ->
+    kind: this one (``cores``), the echo, the brokers (Mosquitto, or the embedded
+    broker in a process) and the worker processes (any other child). The participant
+    processes, which exit once done, count their own CPU time."""
+    kinds = {os.getpid(): "cores"}
+    if echo is not None:
+        kinds[echo] = "echo"
+    for pid in _children(os.getpid()):
+        if pid in kinds:
+            continue
+        try:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        broker = Path(command[0].decode(errors="replace")).name == "mosquitto" or (
+            b"ldm" in command and b"broker" in command
+        )
+        kinds[pid] = "brokers" if broker else "worker"
+    return kinds
+
+
+def _cpu_by_kind(kinds: dict[int, str]) -> dict[str, float]:
+    """CPU seconds so far, summed by kind of process."""
+    total = dict.fromkeys(("cores", "worker", "brokers", "echo"), 0.0)
+    for pid, kind in kinds.items():
+        total[kind] += _cpu_seconds(pid)
+    return total
+
+
 def _kind(brokers: BrokerChoice) -> Literal["mosquitto", "embedded-process"]:
     if brokers == "mosquitto" or (brokers == "auto" and find_mosquitto()):
         if not find_mosquitto():
@@ -534,6 +598,8 @@ def _load(
         go.set()
         say(f"  sending for {config.duration:g} s ...")
         cpu0 = time.process_time()
+        kinds = _processes(echo.pid)
+        by_kind0 = _cpu_by_kind(kinds) if kinds and Path("/proc/self/stat").exists() else {}
         sent = {s.index: 0 for s in shards}
         answered = dict(sent)
         done: dict[int, dict[str, Any]] = {}
@@ -561,6 +627,11 @@ def _load(
                     f"{sum(answered.values())} replies"
                 )
         cpu_cores = (time.process_time() - cpu0) / config.duration
+        by_kind = {}
+        if by_kind0:
+            # Once each participant process reported done, before any of them exits.
+            by_kind = {k: v - by_kind0[k] for k, v in _cpu_by_kind(kinds).items()}
+            by_kind["participants"] = -1.0  # their own clocks, below
     finally:
         abort.set()
         go.set()
@@ -592,6 +663,7 @@ def _load(
         ramp=ramp,
         cpu_participants=sum(p["cpu"] for p in parts) / config.duration,
         cpu_cores=cpu_cores,
+        cpu={k: sum(p["cpu"] for p in parts) if v < 0 else v for k, v in by_kind.items()},
         errors=[e for p in parts for e in p["errors"]][:10],
     )
 
@@ -694,11 +766,19 @@ def format_report(r: BenchReport) -> str:
             )
         lines.append("(the participant's receipt of the reply is in the round trip above)")
     cpu = r.cpu_per_1000()
-    lines += [
-        "",
-        f"CPU s per 1,000 fixes: participants {cpu['participants']:.2f}, "
-        f"cores {cpu['cores']:.2f}, worker {cpu['worker']:.2f} (brokers not counted)",
-    ]
+    if r.cpu:
+        lines += [
+            "",
+            "CPU s per 1,000 fixes (from /proc), each kind of process:",
+            "  " + "  ".join(f"{name} {seconds:.3f}" for name, seconds in cpu.items()),
+            f"  total {sum(cpu.values()):.3f} (cores: the process of both cores)",
+        ]
+    else:
+        lines += [
+            "",
+            f"CPU s per 1,000 fixes: participants {cpu['participants']:.2f}, "
+            f"cores {cpu['cores']:.2f}, worker {cpu['worker']:.2f} (brokers not counted)",
+        ]
     if r.privacy:
         lines += ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]
         for p in r.privacy:

@@ -30,9 +30,9 @@ from laas.map.hdmap import HdMap
 from laas.regions import Region, split
 from laas.service import LaasService, WorkerConfig, start_worker
 from ldm import Core, Provider
-from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
-from ldm.hops import Hops
-from ldm.identity import SigningKey
+from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
+from ldm.ops.hops import Hops
+from ldm.security.identity import SigningKey
 
 __all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
 

@@ -40,10 +40,11 @@ from laas.map.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig, service_spec
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import simulate_with
-from ldm import KeyPair, Provider, topics
-from ldm.crypto import aad
-from ldm.messages import Envelope
+from ldm import KeyPair, Provider
+from ldm.security.crypto import aad
 from ldm.transport import Message
+from ldm.wire import topics
+from ldm.wire.messages import Envelope
 
 __all__ = ["WorkerBenchReport", "bench_worker", "format_worker_report"]
 

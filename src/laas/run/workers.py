@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from laas.errors import ConfigError
-from ldm.identity import SigningKey
+from ldm.security.identity import SigningKey
 
 __all__ = ["child_argv", "serve_processes"]
 

@@ -22,8 +22,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Literal, Protocol, Self
 
-from ldm.broker import BrokerProcess, EmbeddedBroker
 from ldm.errors import ConnectError
+from ldm.local.embedded import BrokerProcess, EmbeddedBroker
 
 __all__ = [
     "BrokerKind",

@@ -1,6 +1,6 @@
 """pytest fixtures for real brokers; import them into a conftest.py:
 
-    from ldm.pytest_plugin import broker_factory, broker_kind, mqtt_broker  # noqa: F401
+    from ldm.local.pytest_plugin import broker_factory, broker_kind, mqtt_broker  # noqa: F401
 
 ``broker_kind`` is parametrised over the embedded broker and Mosquitto (marked
 ``mosquitto``); Mosquitto tests skip when it is not installed, unless
@@ -14,7 +14,13 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from ldm.brokers import BrokerKind, RunningBroker, find_mosquitto, mosquitto_required, start_broker
+from ldm.local.brokers import (
+    BrokerKind,
+    RunningBroker,
+    find_mosquitto,
+    mosquitto_required,
+    start_broker,
+)
 
 __all__ = ["broker_factory", "broker_kind", "mqtt_broker", "need_mosquitto"]
 

@@ -27,6 +27,13 @@ backbone broker (every core connects there). It
 
 Session state lives on the core's worker thread; what admission on paho's threads
 shares with it (budgets, session keys, recent correlation ids) is under one lock.
+
+Pay per batch: a participant's input is decoded and its tag checked once, at intake,
+and the decoded envelope travels with it to the worker. The worker takes everything
+that waited (up to ``max_batch``) at once, and the envelopes it forwards to one
+destination (a provider, another core) leave as one batch (`ldm.wire.batch`) once it
+has handled them all; a lone envelope leaves at once, as a single message. A core
+forwards the envelope bytes it received (the user core drops the tag first).
 """
 
 from __future__ import annotations
@@ -39,19 +46,34 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
 
-from ldm import topics
-from ldm._worker import Worker
 from ldm.config import BrokerSettings, CoreConfig, build
-from ldm.crypto import KeyPair, input_tag
-from ldm.hops import Hops
-from ldm.identity import SigningKey, verify
-from ldm.intake import FairQueue
-from ldm.messages import (
+from ldm.core.admission import (
+    NOTICE_RATE,
+    Admitted,
+    Bucket,
+    Budget,
+    Charge,
+    Limits,
+    SessionKeys,
+    request_like,
+    tagged,
+)
+from ldm.core.state import Pseudonym, Route, ServiceEntry, SessionState, new_pseudonym
+from ldm.ops.hops import Hops
+from ldm.security.crypto import KeyPair, input_tag
+from ldm.security.identity import SigningKey, verify
+from ldm.security.trust import Trust
+from ldm.transport.intake import FairQueue
+from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
+from ldm.transport.worker import Worker
+from ldm.wire import batch, topics
+from ldm.wire.batch import Outbox
+from ldm.wire.messages import (
     Announcement,
     CoreStatus,
     Envelope,
@@ -63,8 +85,6 @@ from ldm.messages import (
     SessionRequest,
     Withdrawal,
 )
-from ldm.transport import Connected, Event, Message, Transport, Will
-from ldm.trust import Trust
 
 __all__ = ["Core", "CoreStats"]
 
@@ -74,220 +94,28 @@ _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _TOKEN = topics.TOKEN_PATTERN
-_NOTICE_RATE = 10.0  # rejection notices per second and client, so refusing costs little
 _ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
     Announcement | Withdrawal
 )
 _REPAIR_RATE = 5.0  # service-list repairs per second: a second core on the broker cannot loop us
 
 
-def new_pseudonym() -> str:
-    """A fresh random pseudonym (96 bits), unlinkable to anything else."""
-    return secrets.token_urlsafe(12)
-
-
-@dataclass(slots=True)
-class _Service:
-    description: ServiceDescription
-    origin: str
-    expires: float
-    sig: str | None = None  # the announcement's signature, passed on to the backbone
-
-
-@dataclass(slots=True)
-class _Pseudonym:
-    name: str
-    key: str
-    created: float
-    service_key: str  # the service's public key when this pseudonym was made
-    until: float = float("inf")  # end of grace once replaced
-
-
-@dataclass(slots=True)
-class _Session:
-    client: str
-    service: str
-    last_seen: float
-    current: _Pseudonym | None = None
-    old: list[_Pseudonym] = field(default_factory=list)
-    next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
-    secret: bytes | None = None  # shared with the participant by the latest grant
-    last_grant: SessionNotice | None = None  # sent again, unchanged, for a duplicate request
-
-
-@dataclass(slots=True)
-class _Bucket:
-    """A token bucket: ``rate`` tokens per second, at most ``burst`` saved up."""
-
-    tokens: float
-    stamp: float
-
-    def take(self, now: float, rate: float, burst: float) -> bool:
-        self.tokens = min(burst, self.tokens + (now - self.stamp) * rate)
-        self.stamp = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
-
-    def full(self, now: float, rate: float, burst: float) -> bool:
-        return self.tokens + (now - self.stamp) * rate >= burst
-
-    def ready(self, now: float, rate: float, burst: float) -> bool:
-        """Whether `take` would succeed now; takes nothing."""
-        return min(burst, self.tokens + (now - self.stamp) * rate) >= 1.0
-
-
-_Charge = Literal["own", "other", "session"]
-"""Which of a participant's budgets pays for one of its messages (`_Limits`)."""
-
-
-@dataclass(slots=True)
-class _Budget:
-    """Input at ``rate``/``burst`` and the refusal notices that answer it at 10/s."""
-
-    input: _Bucket
-    notices: _Bucket
-
-    @classmethod
-    def new(cls, now: float, burst: float) -> _Budget:
-        return cls(_Bucket(burst, now), _Bucket(_NOTICE_RATE, now))
-
-    def full(self, now: float, rate: float, burst: float) -> bool:
-        return self.input.full(now, rate, burst) and self.notices.full(
-            now, _NOTICE_RATE, _NOTICE_RATE
-        )
-
-
-@dataclass(slots=True)
-class _Limits:
-    """One participant client id's budgets, each paying for one kind of its messages:
-
-    - ``own``: its sessions' input, as far as intake can tell (`Core._owned`: fresh
-      and tagged with the session's secret, not a replay; for a session without a
-      secret, under a current or in-grace key of it);
-    - ``session``: its session requests, as far as intake can tell (`request_like`);
-    - ``other``: everything else (input under new or unknown keys, untagged or
-      unreadable input, malformed session requests, other topics).
-
-    On a broker without ACL, input forged on the client's topics is ``other`` (it lacks
-    the session's tag, or is not a well-formed session request), so it uses up neither
-    the sessions' budget nor the one for session requests. Well-formed session requests
-    forged in its name use up ``session``: nothing tells them from its own.
-    """
-
-    own: _Budget
-    other: _Budget
-    session: _Budget
-
-    @classmethod
-    def new(cls, now: float, burst: float) -> _Limits:
-        return cls(_Budget.new(now, burst), _Budget.new(now, burst), _Budget.new(now, burst))
-
-    def budget(self, charge: _Charge) -> _Budget:
-        return self.own if charge == "own" else self.other if charge == "other" else self.session
-
-    def full(self, now: float, rate: float, burst: float) -> bool:
-        """Every bucket is full: the same as having none."""
-        return all(b.full(now, rate, burst) for b in (self.own, self.other, self.session))
-
-
-_UP = "ldm/p/"  # every participant topic the core subscribes to is ldm/p/{client}/up/...
 _PSEUDONYM = "~"  # (_PSEUDONYM, pseudonym): a pseudonym's lane; a client's is its id
 
 
-def pseudonym_of(topic: str) -> str | None:
-    """The pseudonym of a data topic a core receives (``ldm/svc/S/out/P``,
-    ``ldm/bb/in/C/S/U/P``, ``ldm/bb/out/C/S/P``), None for any other topic."""
-    levels = topic.split("/")
-    n = len(levels)
-    if n == 5 and levels[1] == "svc" and levels[3] == "out":
-        return levels[4]
-    if levels[1:2] == ["bb"] and (
-        (n == 7 and levels[2] == "in") or (n == 6 and levels[2] == "out")
-    ):
-        return levels[-1]
-    return None
+_DATA = frozenset({"provider_reply", "bb_input", "bb_reply"})
+"""Single data messages a core receives: each waits in its pseudonym's lane."""
+_BATCH = frozenset({"provider_reply_batch", "bb_input_batch", "bb_reply_batch"})
+"""Batches a core receives: each envelope in them waits in its pseudonym's lane."""
 
 
-_K = b'"k":"'
-_K_LEN = 44  # base64 of a 32-byte X25519 key
-_TAG_CHECK_MAX = 4096  # bytes: larger input is not checked at intake (charged ``other``)
-
-
-@dataclass(frozen=True, slots=True)
-class _SessionKeys:
-    """What intake knows of one session: its ephemeral keys with the end of their grace
-    (inf: current), and the secret its input is tagged with (None: none yet)."""
-
-    keys: tuple[tuple[bytes, float], ...]
-    secret: bytes | None
-
-    def claims(self, payload: bytes, now: float) -> bool:
-        """Whether `payload` may be this session's input (cheap: a find or two): it has
-        a tag (a session with a secret) or one of the session's keys (one without)."""
-        if self.secret is not None:
-            return b'"m"' in payload
-        k = envelope_key(payload)
-        return k is not None and any(key == k and until > now for key, until in self.keys)
-
-
-def envelope_key(payload: bytes) -> bytes | None:
-    """The ``k`` of an input envelope as `Envelope.encode` writes it, found without
-    parsing (``"k":"`` within the first 256 bytes, then 44 characters and ``"``).
-
-    Only to choose the budget that pays for a message of a session without a secret
-    (the message is parsed properly later); anyone who copies the key gets the same.
-    """
-    at = payload.find(_K, 0, 256)
-    if at < 0:
-        return None
-    start = at + len(_K)
-    end = start + _K_LEN
-    return payload[start:end] if payload[end : end + 1] == b'"' else None
-
-
-def request_like(payload: bytes) -> bool:
-    """Whether a payload may be a session request (at most 1 KiB, naming a
-    ``"service"``), to charge it to the client's ``session`` budget; cheap, and
-    validated properly later."""
-    return len(payload) <= 1024 and b'"service"' in payload
-
-
-def tagged(secret: bytes, payload: bytes) -> tuple[str, float] | None:
-    """The correlation id and time of an input envelope of at most 4 KiB that carries a
-    valid tag ``m`` of the session's secret (`ldm.crypto.input_tag`); None for
-    anything else."""
-    if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:
-        return None
-    try:
-        env = json.loads(payload)
-    except (ValueError, RecursionError):
-        return None
-    if not isinstance(env, dict):
-        return None
-    c, t, k, d, m = (env.get(name) for name in ("c", "t", "k", "d", "m"))
-    if not (isinstance(t, float) and all(isinstance(x, str) for x in (c, k, d, m))):
-        return None
-    if not hmac.compare_digest(str(m), input_tag(secret, str(c), t, str(k), str(d))):
-        return None
-    return str(c), t
-
-
-@dataclass(frozen=True, slots=True)
-class _Admitted(Message):
-    """A participant message taken at intake (`Core.sink`), with what intake decided:
-    ``charge``: the budget that paid for it; ``refused``: over the rate, only its
-    ``rejected`` notice is left to send (the notice bucket already paid)."""
-
-    charge: _Charge = "other"
-    refused: bool = False
-
-
-@dataclass(slots=True)
-class _Route:
-    user_core: str
-    last_seen: float
+def single_topic(topic: topics.Topic, pseudonym: str) -> str:
+    """The single message's topic of `pseudonym`'s envelope in a batch on `topic`."""
+    if topic.kind == "bb_input_batch":
+        return topics.bb_input(topic.core, topic.service, topic.user_core, pseudonym)
+    if topic.kind == "bb_reply_batch":
+        return topics.bb_reply(topic.core, topic.service, pseudonym)
+    return topics.provider_reply(topic.service, pseudonym)
 
 
 @dataclass(slots=True)
@@ -326,6 +154,10 @@ class CoreStats:
     session again when its request times out."""
     rotations: int = 0
     sessions_expired: int = 0
+    batches_sent: int = 0
+    """Messages that carried more than one envelope to a provider or another core."""
+    batched: int = 0
+    """Envelopes forwarded in those batches (the rest went one per message)."""
     dropped_retained: int = 0
     """Participant messages the broker delivered as retained (each cleared on the
     broker with an empty retained publish; old, so never taken as input), and empty
@@ -340,15 +172,19 @@ class Core(Worker[Event]):
         self._intake: FairQueue[object] = FairQueue(config.max_queue)
         """Participant messages wait per client id, data per pseudonym, served
         round-robin; control first (`sink`)."""
-        super().__init__(f"ldm-core-{config.name}", config.tick, inbox=self._intake)
+        super().__init__(
+            f"ldm-core-{config.name}", config.tick, inbox=self._intake, batch=config.max_batch
+        )
+        self._outbox = Outbox()
+        """The worker's: envelopes to forward, sent once it handled what waited."""
         self._guard = threading.Lock()
         """What paho's threads share with the worker: ``_limits``, ``_keys``, and the
         counters admission writes (rejected_rate, notices_suppressed, dropped_overload,
         dropped_retained)."""
-        self._keys: dict[tuple[str, str], _SessionKeys] = {}
+        self._keys: dict[tuple[str, str], SessionKeys] = {}
         """(client, service) -> what intake needs to know of the session, to charge its
         input to the right bucket; the worker writes it."""
-        self._charge: _Charge = "other"  # worker: the budget that paid for this message
+        self._charge: Charge = "other"  # worker: the budget that paid for this message
         self._recent: OrderedDict[tuple[str, str, str], float] = OrderedDict()
         """(client, service, c) of input charged to its session in the last ``max_age``,
         oldest first: a replay of one is not the session's (intake, under ``_guard``)."""
@@ -358,14 +194,14 @@ class Core(Worker[Event]):
         self.stats = CoreStats()
         self.hops: Hops | None = None
         """Set to note when each input passes this core (`ldm.hops`; `laas bench`)."""
-        self._services: dict[str, _Service] = {}
-        self._sessions: dict[tuple[str, str], _Session] = {}
-        self._pseudonyms: dict[str, _Session] = {}
-        self._routes: dict[str, _Route] = {}
-        self._limits: dict[str, _Limits] = {}
+        self._services: dict[str, ServiceEntry] = {}
+        self._sessions: dict[tuple[str, str], SessionState] = {}
+        self._pseudonyms: dict[str, SessionState] = {}
+        self._routes: dict[str, Route] = {}
+        self._limits: dict[str, Limits] = {}
         self._published_list: list[ServiceDescription] | None = None
         self._list_payload = b""  # the retained list as this core last published it
-        self._repairs = _Bucket(_REPAIR_RATE, 0.0)
+        self._repairs = Bucket(_REPAIR_RATE, 0.0)
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
         self.trust = Trust(config.service_keys, config.anchors)
@@ -379,6 +215,7 @@ class Core(Worker[Event]):
         for flt in (topics.PARTICIPANT_UP_FILTER, topics.ANNOUNCE_FILTER, topics.SERVICES):
             self.cluster.subscribe(flt, 1)
         self.cluster.subscribe(topics.PROVIDER_REPLY_FILTER, config.data_qos)
+        self.cluster.subscribe(topics.PROVIDER_REPLY_BATCH_FILTER, config.data_qos)
         self.backbone: Transport | None = None
         if config.backbone is not None:
             offline = CoreStatus(name=self.name, online=False).model_dump_json().encode()
@@ -393,6 +230,8 @@ class Core(Worker[Event]):
                 self.backbone.subscribe(flt, 1)
             self.backbone.subscribe(topics.bb_input_filter(self.name), config.data_qos)
             self.backbone.subscribe(topics.bb_reply_filter(self.name), config.data_qos)
+            self.backbone.subscribe(topics.bb_input_batch_filter(self.name), config.data_qos)
+            self.backbone.subscribe(topics.bb_reply_batch_filter(self.name), config.data_qos)
 
     @classmethod
     def create(
@@ -473,33 +312,51 @@ class Core(Worker[Event]):
         here (`_admit`), before it shares a queue with anyone, and waits in its client's
         lane of the fair queue; data under a pseudonym (a provider's reply, input and
         replies over the backbone) waits in that pseudonym's lane; control (service
-        announcements and lists, core statuses, reconnects) is handled first."""
+        announcements and lists, core statuses, reconnects) is handled first. A batch
+        is cut into its envelopes here (without decoding them), each in its lane."""
         if not isinstance(item, Message):
             super().sink(item)
-        elif item.source == _CLUSTER and item.topic.startswith(_UP):
+            return
+        topic = topics.parse(item.topic)
+        if item.source == _CLUSTER and topic.client:
             timer = self.timer
             if timer is None:
-                self._admit(item)
+                self._admit(item, topic)
             else:
                 started = time.perf_counter()
-                self._admit(item)
+                self._admit(item, topic)
                 timer("admit", time.perf_counter() - started)
-        else:
-            pseudonym = pseudonym_of(item.topic)
-            if pseudonym is None:
-                super().sink(item)
-            elif not self._intake.offer(item, (_PSEUDONYM, pseudonym)):
+        elif topic.kind in _DATA:
+            if not self._intake.offer(item, (_PSEUDONYM, topic.pseudonym)):
                 self.overflowed()
+        elif topic.kind in _BATCH:
+            self._unbatch(item, topic)
+        else:
+            super().sink(item)
+
+    def _unbatch(self, msg: Message, topic: topics.Topic) -> None:
+        """A batch (paho's thread): each envelope waits in its pseudonym's lane as the
+        single message it stands for; a malformed line is counted and skipped."""
+        entries, bad = batch.decode(msg.payload)
+        dropped = 0
+        for pseudonym, envelope in entries:
+            single = Message(single_topic(topic, pseudonym), envelope, msg.qos, False, msg.source)
+            if not self._intake.offer(single, (_PSEUDONYM, pseudonym)):
+                dropped += 1
+        if bad or dropped:
+            with self._guard:
+                self.stats.dropped_invalid += bad
+                self.stats.dropped_overload += dropped
 
     def overflowed(self) -> None:
         with self._guard:
             self.stats.dropped_overload += 1
 
-    def _admit(self, msg: Message) -> None:
+    def _admit(self, msg: Message, topic: topics.Topic) -> None:
         """Intake of ``ldm/p/{client}/up/...`` on paho's thread, before any queue.
 
         Retained (old: cleared on the broker) and empty messages are dropped. The rest
-        is charged to one of the client's budgets (`_Limits`): what looks like a session
+        is charged to one of the client's budgets (`Limits`): what looks like a session
         request to ``session``, its session's input (`_owned`) to ``own``,
         anything else to ``other``. Over the rate it is refused here (its ``rejected``
         notice, if the notice bucket pays, is queued in the client's lane), else queued
@@ -513,15 +370,15 @@ class Core(Worker[Event]):
             with self._guard:
                 self.stats.dropped_retained += 1
             return
-        levels = msg.topic.split("/", 6)  # ldm, p, client, up, kind, service, (more)
-        client = levels[2]
-        kind = levels[4] if len(levels) > 4 else ""
-        service = levels[5] if len(levels) == 6 and kind == "data" else ""
+        client = topic.client
+        service = topic.service if topic.kind == "participant_input" else ""
         cfg = self.config
         now = time.time()
-        charge: _Charge = "other"
+        charge: Charge = "other"
         verified = True  # whether `charge` is known to be right
-        if kind == "session" and len(levels) == 5 and request_like(msg.payload):
+        envelope: Envelope | None = None  # decoded and its tag checked with `secret`
+        secret: bytes | None = None
+        if topic.kind == "session_request" and request_like(msg.payload):
             charge = "session"
         elif service:
             with self._guard:
@@ -534,7 +391,11 @@ class Core(Worker[Event]):
                     verified = self._limits_of(client, now).own.input.ready(
                         now, cfg.rate, cfg.burst
                     )
-                own = not verified or self._owned(known, client, service, msg.payload, now)
+                if verified:
+                    own, envelope = self._owned(known, client, service, msg.payload, now)
+                    secret = known.secret if envelope is not None else None
+                else:
+                    own = True
                 charge = "own" if own else "other"
         notice = False
         with self._guard:
@@ -544,50 +405,60 @@ class Core(Worker[Event]):
             if not admitted:
                 self.stats.rejected_rate += 1
                 payer = budget if verified else limits.other
-                notice = len(levels) >= 5 and self._take_notice(payer, now)
+                deep = msg.topic.count("/") >= 4  # ldm/p/{client}/up/...: its notice topic
+                notice = deep and self._take_notice(payer, now)
         if admitted or notice:
-            item = _Admitted(
-                msg.topic, msg.payload, msg.qos, False, msg.source, charge, not admitted
+            item = Admitted(
+                msg.topic,
+                msg.payload,
+                msg.qos,
+                False,
+                msg.source,
+                charge,
+                not admitted,
+                envelope if admitted else None,
+                secret,
             )
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
 
     def _owned(
-        self, known: _SessionKeys, client: str, service: str, payload: bytes, now: float
-    ) -> bool:
+        self, known: SessionKeys, client: str, service: str, payload: bytes, now: float
+    ) -> tuple[bool, Envelope | None]:
         """Whether `payload` is its session's input, and new: tagged with the session's
         secret (under any key: a new key after a rotation is the session's too), fresh
         (``max_age``), and not a copy of one taken in the last ``max_age`` (an
         eavesdropper's replay on a broker without ACL). A session without a secret has
-        nothing to check beyond its key (`_SessionKeys.claims`)."""
+        nothing to check beyond its key (`SessionKeys.claims`). With it, the envelope
+        decoded and its tag checked (None when there is no secret or it is not its own)."""
         if known.secret is None:
-            return True
-        tag = tagged(known.secret, payload)
-        if tag is None:
-            return False
-        c, t = tag
+            return True, None
+        env = tagged(known.secret, payload)
+        if env is None:
+            return False, None
+        c, t = env.c, env.t
         cfg = self.config
         if not now - cfg.max_age <= t <= now + cfg.max_clock_skew:
-            return False
+            return False, None
         with self._guard:
             recent = self._recent
             while recent and next(iter(recent.values())) < now - cfg.max_age:
                 recent.popitem(last=False)
             if (client, service, c) in recent:
-                return False
+                return False, None
             recent[(client, service, c)] = now
-        return True
+        return True, env
 
-    def _limits_of(self, client: str, now: float) -> _Limits:
+    def _limits_of(self, client: str, now: float) -> Limits:
         """The client's budgets, new (full) if it has none (hold ``_guard``)."""
         limits = self._limits.get(client)
         if limits is None:
-            limits = self._limits[client] = _Limits.new(now, self.config.burst)
+            limits = self._limits[client] = Limits.new(now, self.config.burst)
         return limits
 
-    def _take_notice(self, budget: _Budget, now: float) -> bool:
+    def _take_notice(self, budget: Budget, now: float) -> bool:
         """A token from the budget's notice bucket (hold ``_guard``)."""
-        if budget.notices.take(now, _NOTICE_RATE, _NOTICE_RATE):
+        if budget.notices.take(now, NOTICE_RATE, NOTICE_RATE):
             return True
         self.stats.notices_suppressed += 1
         return False
@@ -595,26 +466,37 @@ class Core(Worker[Event]):
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
+        self.handle_many([item])
+
+    def handle_many(self, items: list[Event]) -> None:
+        """Everything that waited, in the order the fair queue gave it; then the
+        envelopes to forward leave, one message per destination (`Outbox`)."""
         timer = self.timer
-        if timer is None:
-            self._handle(item)
-            return
-        started = time.perf_counter()
         try:
-            self._handle(item)
+            for item in items:
+                if timer is None:
+                    self._handle(item)
+                    continue
+                started = time.perf_counter()
+                try:
+                    self._handle(item)
+                finally:
+                    timer("route", time.perf_counter() - started)
         finally:
-            timer("route", time.perf_counter() - started)
+            self._outbox.flush()
+            self.stats.batches_sent = self._outbox.batches
+            self.stats.batched = self._outbox.batched
 
     def _handle(self, item: Event) -> None:
         if isinstance(item, Connected):
             self._on_connected(item.source)
             return
-        levels = item.topic.split("/")
+        topic = topics.parse(item.topic)
         try:
             if item.source == _CLUSTER:
-                self._from_cluster(item, levels)
+                self._from_cluster(item, topic)
             else:
-                self._from_backbone(item, levels)
+                self._from_backbone(item, topic)
         except ValidationError:
             self.stats.dropped_invalid += 1
             log.debug(
@@ -657,31 +539,32 @@ class Core(Worker[Event]):
     # Every message ends in exactly one counter: forwarded_*, dropped_*, rejected_*,
     # answered_*, granted, or control (an announcement, withdrawal or core status taken).
 
-    def _from_cluster(self, msg: Message, levels: list[str]) -> None:
-        if levels[1] == "p" and len(levels) >= 5:
-            self._from_participant(msg, levels)
-        elif levels[1] == "svc" and len(levels) == 4 and levels[3] == "announce":
-            self._local_announcement(levels[2], msg.payload)
-        elif levels[1] == "svc" and len(levels) == 5 and levels[3] == "out":
-            self._reply(levels[2], levels[4], Envelope.model_validate_json(msg.payload))
-        elif msg.topic == topics.SERVICES:
+    def _from_cluster(self, msg: Message, topic: topics.Topic) -> None:
+        kind = topic.kind
+        if topic.client and msg.topic.count("/") >= 4:  # ldm/p/{client}/up/...
+            self._from_participant(msg, topic)
+        elif kind == "announce":
+            self._local_announcement(topic.service, msg.payload)
+        elif kind == "provider_reply":
+            env = Envelope.model_validate_json(msg.payload)
+            self._reply(topic.service, topic.pseudonym, env, msg.payload)
+        elif kind == "services":
             self._check_list(msg.payload)
         else:
             self.stats.dropped_invalid += 1
 
-    def _from_backbone(self, msg: Message, levels: list[str]) -> None:
-        kind = levels[2] if len(levels) > 2 else ""
-        if kind == "announce" and len(levels) == 4:
-            self._remote_announcement(levels[3], msg.payload)
-        elif kind == "core" and len(levels) == 4:
+    def _from_backbone(self, msg: Message, topic: topics.Topic) -> None:
+        kind = topic.kind
+        if kind == "bb_announce":
+            self._remote_announcement(topic.service, msg.payload)
+        elif kind == "bb_core":
             if msg.payload:
                 status = CoreStatus.model_validate_json(msg.payload)
                 if not status.online and status.name != self.name:
                     self._drop_origin(status.name)
             self.stats.control += 1
-        elif kind == "in" and len(levels) == 7:
-            # ldm/bb/in/{me}/{service}/{user_core}/{pseudonym}
-            service, user_core, pseudonym = levels[4], levels[5], levels[6]
+        elif kind == "bb_input":
+            service, user_core, pseudonym = topic.service, topic.user_core, topic.pseudonym
             env = Envelope.model_validate_json(msg.payload)
             if self._stale(env):
                 return
@@ -691,22 +574,26 @@ class Core(Worker[Event]):
             if svc is None or svc.origin != self.name:
                 self.stats.dropped_unroutable += 1
                 return
-            self._routes[pseudonym] = _Route(user_core, time.time())
-            self.cluster.publish(
-                topics.provider_input(service, pseudonym), env.encode(), self.config.data_qos
+            self._routes[pseudonym] = Route(user_core, time.time())
+            self._forward(
+                self.cluster,
+                topics.provider_input_batch(service),
+                topics.provider_input(service, pseudonym),
+                pseudonym,
+                env,
+                msg.payload,
             )
             self.stats.forwarded_in += 1
-        elif kind == "out" and len(levels) == 6:
-            # ldm/bb/out/{me}/{service}/{pseudonym}
+        elif kind == "bb_reply":
             env = Envelope.model_validate_json(msg.payload)
             if not self._stale(env):
-                self._deliver(levels[4], levels[5], env)
+                self._deliver(topic.service, topic.pseudonym, env)
         else:
             self.stats.dropped_invalid += 1
 
     # --- participant input: the user cluster's boundary ---------------------------------
 
-    def _from_participant(self, msg: Message, levels: list[str]) -> None:
+    def _from_participant(self, msg: Message, topic: topics.Topic) -> None:
         """``ldm/p/{client}/up/session`` or ``ldm/p/{client}/up/data/{service}``.
 
         The client's token bucket was applied at intake (`_admit`, paho's thread; a
@@ -715,11 +602,11 @@ class Core(Worker[Event]):
         refusal is counted and answered to this client only, from the notice bucket
         that intake charged the message to.
         """
-        client = levels[2]
-        is_session = levels[4] == "session" and len(levels) == 5
-        is_data = levels[4] == "data" and len(levels) == 6
-        service = levels[5] if is_data else ""
-        admitted = msg if isinstance(msg, _Admitted) else None
+        client = topic.client
+        is_session = topic.kind == "session_request"
+        is_data = topic.kind == "participant_input"
+        service = topic.service
+        admitted = msg if isinstance(msg, Admitted) else None
         self._charge = (
             admitted.charge if admitted is not None else "session" if is_session else "other"
         )
@@ -764,10 +651,11 @@ class Core(Worker[Event]):
                 self._session_request(client, request)
                 self._share_keys(client, request.service)  # a grant may bring a new secret
             else:
-                self._participant_input(
-                    client, service, Envelope.model_validate_json(msg.payload), now
-                )
-                self._share_keys(client, service)
+                known = msg.envelope if isinstance(msg, Admitted) else None
+                env = Envelope.model_validate_json(msg.payload) if known is None else known
+                secret = msg.secret if known is not None and isinstance(msg, Admitted) else None
+                if self._participant_input(client, service, env, now, secret):
+                    self._share_keys(client, service)
         except ValidationError as exc:
             self.stats.dropped_invalid += 1
             what = "session request" if is_session else "input envelope"
@@ -778,11 +666,11 @@ class Core(Worker[Event]):
         """Tell intake the session's keys (current, and old ones until their grace ends)
         and its secret, after each message that may have changed them."""
         session = self._sessions.get((client, service))
-        known: _SessionKeys | None = None
+        known: SessionKeys | None = None
         if session is not None and (session.current is not None or session.secret is not None):
             current = [] if session.current is None else [session.current]
             keys = tuple((p.key.encode(), p.until) for p in (*current, *session.old))
-            known = _SessionKeys(keys, session.secret)
+            known = SessionKeys(keys, session.secret)
         if self._keys.get((client, service)) != known:  # only the worker writes it
             with self._guard:
                 if known is not None:
@@ -822,7 +710,7 @@ class Core(Worker[Event]):
 
     def _admit_notice(self, client: str) -> bool:
         """Take a token from the notice bucket (10/s) of the budget that paid for the
-        message being handled (`_Limits`): False when it is empty. A client intake never
+        message being handled (`Limits`): False when it is empty. A client intake never
         saw (no buckets) is answered."""
         with self._guard:
             limits = self._limits.get(client)
@@ -846,12 +734,12 @@ class Core(Worker[Event]):
         if not self._acceptable(ann):
             return
         self.stats.control += 1
-        svc = _Service(ann.service, self.name, ann.t + self.config.service_ttl, ann.sig)
+        svc = ServiceEntry(ann.service, self.name, ann.t + self.config.service_ttl, ann.sig)
         self._services[service] = svc
         self._announce_backbone(service, svc)
         self._publish_list()
 
-    def _withdrawn(self, svc: _Service, goodbye: Withdrawal | None) -> bool:
+    def _withdrawn(self, svc: ServiceEntry, goodbye: Withdrawal | None) -> bool:
         """Whether a withdrawal (None: an empty payload) ends ``svc``.
 
         With trust set, only the service's own signed withdrawal of its current key
@@ -899,7 +787,7 @@ class Core(Worker[Event]):
             return False
         return True
 
-    def _announce_backbone(self, service: str, svc: _Service) -> None:
+    def _announce_backbone(self, service: str, svc: ServiceEntry) -> None:
         if self.backbone is None:
             return
         stamp = svc.expires - self.config.service_ttl
@@ -926,7 +814,7 @@ class Core(Worker[Event]):
         if ann.origin == self.name or (current is not None and current.origin == self.name):
             return  # our own, back from the backbone; or a local provider wins over a remote one
         expires = ann.t + self.config.service_ttl
-        self._services[service] = _Service(ann.service, ann.origin, expires, ann.sig)
+        self._services[service] = ServiceEntry(ann.service, ann.origin, expires, ann.sig)
         self._publish_list()
 
     def _remove_service(self, service: str) -> None:
@@ -996,7 +884,7 @@ class Core(Worker[Event]):
         now = time.time()
         session = self._sessions.get((client, req.service))
         if session is None:
-            session = _Session(client, req.service, now)
+            session = SessionState(client, req.service, now)
             self._sessions[(client, req.service)] = session
         session.last_seen = now
         last = session.last_grant
@@ -1033,7 +921,13 @@ class Core(Worker[Event]):
             return True
         return False
 
-    def _participant_input(self, client: str, service: str, env: Envelope, now: float) -> None:
+    def _participant_input(
+        self, client: str, service: str, env: Envelope, now: float, checked: bytes | None = None
+    ) -> bool:
+        """Input of a participant's session, forwarded under its pseudonym. `checked`:
+        the secret intake checked the tag with (it is not checked again while the
+        session still has it). True if what intake knows of the session may have
+        changed (a new session, key or pseudonym)."""
         if env.t > now + self.config.max_clock_skew:
             self.stats.rejected_clock += 1
             error = (
@@ -1041,20 +935,26 @@ class Core(Worker[Event]):
                 f"{self.config.max_clock_skew:g} s); synchronise the clock"
             )
             self._reject(client, service, "clock", error, c=env.c)
-            return
+            return False
         if self._stale(env):
-            return
+            return False
         session = self._sessions.get((client, service))
         if session is None or env.k is None:
             self.stats.answered_nosession += 1
             self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
-            return
-        if session.secret is not None and (
-            env.m is None
-            or not hmac.compare_digest(env.m, input_tag(session.secret, env.c, env.t, env.k, env.d))
+            return True
+        if (
+            session.secret is not None
+            and session.secret is not checked
+            and (
+                env.m is None
+                or not hmac.compare_digest(
+                    env.m, input_tag(session.secret, env.c, env.t, env.k, env.d)
+                )
+            )
         ):
             self.stats.dropped_unauthentic += 1
-            return
+            return False
         svc = self._services.get(service)
         if svc is None:
             self.stats.answered_refused += 1
@@ -1062,9 +962,10 @@ class Core(Worker[Event]):
             self._answer(
                 client, SessionNotice(kind="refused", service=service, c=env.c, error=error)
             )
-            return
+            return False
         now = time.time()
         session.last_seen = now
+        before = session.current
         pseudonym = self._pseudonym_for(session, env.k, svc.description.public_key, now)
         if pseudonym is None:
             self.stats.rejected_rekey += 1
@@ -1073,25 +974,38 @@ class Core(Worker[Event]):
                 "per session; keep the current key until the core asks to rotate"
             )
             self._reject(client, service, "rate_limited", error, c=env.c)
-            return
+            return False
         payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
         if self.hops is not None:
             self.hops.mark("sent", env.c, env.t)
             self.hops.mark("user_core", env.c, now)
+        qos = self.config.data_qos
         if svc.origin == self.name:
-            self.cluster.publish(
-                topics.provider_input(service, pseudonym), payload, self.config.data_qos
+            self._outbox.add(
+                self.cluster,
+                topics.provider_input_batch(service),
+                topics.provider_input(service, pseudonym),
+                pseudonym,
+                payload,
+                qos,
             )
         elif self.backbone is not None:
-            topic = topics.bb_input(svc.origin, service, self.name, pseudonym)
-            self.backbone.publish(topic, payload, self.config.data_qos)
+            self._outbox.add(
+                self.backbone,
+                topics.bb_input_batch(svc.origin, service, self.name),
+                topics.bb_input(svc.origin, service, self.name, pseudonym),
+                pseudonym,
+                payload,
+                qos,
+            )
         else:
             self.stats.dropped_unroutable += 1
-            return
+            return False
         self.stats.forwarded_in += 1
+        return session.current is not before
 
     def _pseudonym_for(
-        self, session: _Session, key: str, service_key: str, now: float
+        self, session: SessionState, key: str, service_key: str, now: float
     ) -> str | None:
         """The pseudonym bound to this ephemeral key; a new key means a new pseudonym.
 
@@ -1111,7 +1025,7 @@ class Core(Worker[Event]):
             and now - current.created < self.config.rekey_interval
         ):
             return None
-        fresh = _Pseudonym(new_pseudonym(), key, now, service_key)
+        fresh = Pseudonym(new_pseudonym(), key, now, service_key)
         if current is not None:
             current.until = now + self.config.grace
             session.old.append(current)
@@ -1123,8 +1037,9 @@ class Core(Worker[Event]):
         self._pseudonyms[fresh.name] = session
         return fresh.name
 
-    def _reply(self, service: str, pseudonym: str, env: Envelope) -> None:
-        """A local provider replied: to a local participant, or back over the backbone."""
+    def _reply(self, service: str, pseudonym: str, env: Envelope, payload: bytes) -> None:
+        """A local provider replied: to a local participant, or back over the backbone
+        (`payload`, the envelope's bytes as the provider sent them)."""
         if self._stale(env):
             return
         if pseudonym in self._pseudonyms:
@@ -1134,10 +1049,30 @@ class Core(Worker[Event]):
         if route is None or self.backbone is None:
             self.stats.dropped_unroutable += 1
             return
-        self.backbone.publish(
-            topics.bb_reply(route.user_core, service, pseudonym), env.encode(), self.config.data_qos
+        self._forward(
+            self.backbone,
+            topics.bb_reply_batch(route.user_core, service),
+            topics.bb_reply(route.user_core, service, pseudonym),
+            pseudonym,
+            env,
+            payload,
         )
         self.stats.forwarded_out += 1
+
+    def _forward(
+        self,
+        to: Transport,
+        batch_topic: str,
+        topic: str,
+        pseudonym: str,
+        env: Envelope,
+        payload: bytes,
+    ) -> None:
+        """Forward an envelope as the bytes it came in (decoded, checked, not encoded
+        again), unless they hold a newline, which a batch line cannot: then as encoded."""
+        if b"\n" in payload:
+            payload = env.encode()
+        self._outbox.add(to, batch_topic, topic, pseudonym, payload, self.config.data_qos)
 
     def _deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
         """A fresh reply (the caller checked its age) to the participant of a pseudonym."""

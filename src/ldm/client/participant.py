@@ -26,10 +26,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from ldm import topics
-from ldm._worker import Worker
 from ldm.config import BrokerSettings, ParticipantConfig, build
-from ldm.crypto import KeyPair, SessionCipher, aad, input_tag
 from ldm.errors import (
     ConnectError,
     CryptoError,
@@ -39,8 +36,13 @@ from ldm.errors import (
     SessionError,
     TrustError,
 )
-from ldm.identity import verify
-from ldm.messages import (
+from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
+from ldm.security.identity import verify
+from ldm.security.trust import Trust
+from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
+from ldm.transport.worker import Worker
+from ldm.wire import topics
+from ldm.wire.messages import (
     Envelope,
     ServiceDescription,
     ServiceList,
@@ -48,8 +50,6 @@ from ldm.messages import (
     SessionNotice,
     SessionRequest,
 )
-from ldm.transport import ClientLoop, Connected, Event, Message, Transport
-from ldm.trust import Trust
 
 __all__ = ["Participant", "Session"]
 
@@ -112,8 +112,6 @@ class Session:
         self._pending: dict[str, _Pending] = {}
         self._lock = threading.Lock()
         self._secret = secret  # shared with the core by the grant; tags every input
-        self._reopen_c: str | None = None
-        self._reopen_at = 0.0
         self._rotated_at = time.time()
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
@@ -121,6 +119,11 @@ class Session:
     @property
     def service(self) -> ServiceDescription:
         return self.grant.service
+
+    @property
+    def keys(self) -> _Keys:
+        """The current ephemeral key pair and its cipher with the service."""
+        return self._keys
 
     def submit(self, payload: Mapping[str, Any]) -> Future[Payload]:
         """Send one input now; the future gets the service's reply."""
@@ -158,13 +161,13 @@ class Session:
     def _send(self, c: str, pending: _Pending) -> None:
         keys = pending.keys
         pending.sent = time.time()
-        pending.disconnects = self._participant.transport.disconnects
+        pending.disconnects = self._participant.disconnects
         sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
         k, secret = keys.pair.public, self._secret
         tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
         env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
-        if not self._participant._publish_input(self, env):
-            self._fail(
+        if not self._participant.publish_input(self, env):
+            self.fail(
                 c,
                 ConnectError(
                     f"input for {self.service.name!r} not sent: no connection to the broker "
@@ -172,9 +175,9 @@ class Session:
                 ),
             )
 
-    # --- participant's worker thread --------------------------------------------------
+    # --- called by its participant (the participant's worker thread) --------------------
 
-    def _rotate(self, now: float) -> bool:
+    def rotate(self, now: float) -> bool:
         """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
 
         The core refuses a session's new key sooner than that, so a rotation more often,
@@ -187,7 +190,7 @@ class Session:
         self.rotations += 1
         return True
 
-    def _regrant(self, grant: SessionGrant, secret: bytes | None) -> None:
+    def regrant(self, grant: SessionGrant, secret: bytes | None) -> None:
         """The core granted the session again: new key, re-send what is still waiting.
 
         Each re-sent input gets a new correlation id: the old one travelled under the
@@ -203,7 +206,7 @@ class Session:
             self._rotated_at = time.time()
             self.rotations += 1
         else:
-            self._rotate(time.time())
+            self.rotate(time.time())
         with self._lock:
             waiting, self._pending = list(self._pending.values()), {}
             resend = [(_token(), p) for p in waiting]
@@ -212,7 +215,7 @@ class Session:
             pending.keys = self._keys
             self._send(c, pending)
 
-    def _reply(self, env: Envelope) -> bool:
+    def settle(self, env: Envelope) -> bool:
         """Settle the request ``env`` answers; False (and nothing changes) if it is not
         authentic, so a forged reply never uses up a request."""
         with self._lock:
@@ -238,25 +241,29 @@ class Session:
             _settle(pending.future, payload)
         return True
 
-    def _fail(self, c: str | None, error: Exception) -> None:
+    def fail(self, c: str | None, error: Exception) -> None:
+        """Fail the request `c` (if it still waits) with `error`."""
         with self._lock:
             pending = self._pending.pop(c, None) if c is not None else None
         if pending is not None:
             _settle(pending.future, error=error)
 
-    def _fail_all(self, error: Exception) -> None:
+    def fail_all(self, error: Exception) -> None:
+        """Fail every request still waiting with `error`."""
         with self._lock:
             pending, self._pending = list(self._pending.values()), {}
         for p in pending:
             _settle(p.future, error=error)
 
-    def _expire(self, now: float, limit: float, disconnects: int) -> None:
+    def expire(self, now: float, limit: float, disconnects: int) -> None:
+        """Fail the requests older than `limit` s (RequestTimeout), and ask the
+        participant to open the session again: the core may have lost it."""
         with self._lock:
             old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
             for c, _ in old:
                 del self._pending[c]
         if old:  # the core may have lost or replaced the session without a word: ask again
-            self._participant._reopen(self)
+            self._participant.reopen(self)
         for _, p in old:
             why = "the input or its reply was lost or dropped as stale"
             if disconnects != p.disconnects:
@@ -288,6 +295,9 @@ class Participant(Worker[Event]):
         """Request correlation id -> the key sent with it, until its grant (or a newer
         request) comes: with the grant's ``auth_key`` it gives the session's secret."""
         self._sessions: dict[str, Session] = {}
+        self._reopening: dict[str, tuple[str, float]] = {}
+        """Service -> the correlation id and time of the request that re-opens its
+        session, until the grant (or a refusal) comes."""
         self._lock = threading.Lock()
         self.transport = Transport(
             config.broker, client_id=self.client_id, sink=self.put, name=self.client_id
@@ -351,7 +361,7 @@ class Participant(Worker[Event]):
         for future in opening:
             _settle(future, error=error)
         for session in sessions:
-            session._fail_all(error)
+            session.fail_all(error)
 
     def __enter__(self) -> Participant:
         return self.start()
@@ -394,11 +404,11 @@ class Participant(Worker[Event]):
             # The same service key: keep the ephemeral key (and so the pseudonym), as a
             # new key so soon would be refused by the core (rekey_interval).
             same = old is not None and old.service.public_key == grant.service.public_key
-            keys = old._keys if old is not None and same else None
+            keys = old.keys if old is not None and same else None
             session = Session(self, grant, keys, secret)
             self._sessions[service] = session
         if old is not None:
-            old._fail_all(SessionError(f"the session with {service!r} was opened again"))
+            old.fail_all(SessionError(f"the session with {service!r} was opened again"))
         return session
 
     def _request_session(self, c: str, service: str) -> None:
@@ -412,18 +422,40 @@ class Participant(Worker[Event]):
             topics.session_request(self.client_id), request.model_dump_json().encode(), qos=1
         )
 
-    def _publish_input(self, session: Session, env: Envelope) -> bool:
+    @property
+    def disconnects(self) -> int:
+        """Connections to the broker lost so far."""
+        return self.transport.disconnects
+
+    def publish_input(self, session: Session, env: Envelope) -> bool:
+        """Publish a session's sealed input on its topic (any thread); False if it was
+        not taken (no connection for QoS 0, or the send queue is full)."""
         qos = self.config.data_qos if self.config.data_qos is not None else session.grant.data_qos
         topic = topics.participant_input(self.client_id, session.service.name)
         return self.transport.publish(topic, env.encode(), qos)
 
-    def _reopen(self, session: Session) -> None:
+    def reopen(self, session: Session) -> None:
+        """Ask the core for `session` again (any thread): the core lost it, or the
+        service has a new key. The grant renews the session in place (`Session.regrant`)."""
         now = time.time()
-        if session._reopen_c is not None and now - session._reopen_at < 1.0:
-            return  # asked already; ask again only if no grant came within a second
-        session._reopen_c = _token()
-        session._reopen_at = now
-        self._request_session(session._reopen_c, session.service.name)
+        name = session.service.name
+        with self._lock:
+            asked = self._reopening.get(name)
+            if asked is not None and now - asked[1] < 1.0:
+                return  # asked already; ask again only if no grant came within a second
+            c = _token()
+            self._reopening[name] = (c, now)
+        self._request_session(c, name)
+
+    def _reopened(self, service: str, c: str | None) -> bool:
+        """Whether `c` answers the request that re-opens `service`'s session (it is
+        then answered: no longer waited for)."""
+        with self._lock:
+            asked = self._reopening.get(service)
+            if asked is None or asked[0] != c:
+                return False
+            del self._reopening[service]
+            return True
 
     # --- worker thread ----------------------------------------------------------------
 
@@ -439,18 +471,18 @@ class Participant(Worker[Event]):
         if msg.topic == topics.SERVICES:
             self._service_list(msg.payload)
             return
-        levels = msg.topic.split("/")
-        if len(levels) == 5 and levels[4] == "session":
+        topic = topics.parse(msg.topic)
+        if topic.kind == "session_notice":
             notice = SessionNotice.model_validate_json(msg.payload)
             if self._authentic(notice):
                 self._notice(notice)
             else:
                 self.ignored += 1
-        elif len(levels) == 6 and levels[4] == "data":
-            session = self._sessions.get(levels[5])
+        elif topic.kind == "participant_reply":
+            session = self._sessions.get(topic.service)
             env = Envelope.model_validate_json(msg.payload)
             fresh = time.time() - env.t <= self.config.max_age
-            if session is not None and fresh and not session._reply(env):
+            if session is not None and fresh and not session.settle(env):
                 self.ignored += 1
 
     def _authentic(self, notice: SessionNotice) -> bool:
@@ -504,20 +536,18 @@ class Participant(Worker[Event]):
                 secret = key.session_secret(notice.grant.auth_key)
             if opening is not None:
                 _settle(opening, (notice.grant, secret))  # a duplicate (QoS 1) finds it done
-            elif session is not None and notice.c == session._reopen_c:
-                session._reopen_c = None
-                session._regrant(notice.grant, secret)
+            elif session is not None and self._reopened(notice.service, notice.c):
+                session.regrant(notice.grant, secret)
         elif notice.kind == "refused":
             error = ServiceNotFound(notice.error or f"service {notice.service!r} refused")
             with self._lock:
                 opening = self._opening.get(notice.c or "")
             if opening is not None:
                 _settle(opening, error=error)
-            elif session is not None and notice.c == session._reopen_c:
-                session._reopen_c = None
-                session._fail_all(error)  # the session cannot be re-opened
+            elif session is not None and self._reopened(notice.service, notice.c):
+                session.fail_all(error)  # the session cannot be re-opened
             elif session is not None:
-                session._fail(notice.c, error)
+                session.fail(notice.c, error)
         elif notice.kind == "rejected":
             rejected = RequestRejected(
                 notice.reason or "invalid", f"the core refused the input: {notice.error}"
@@ -527,11 +557,11 @@ class Participant(Worker[Event]):
             if opening is not None:
                 _settle(opening, error=rejected)
             elif session is not None:
-                session._fail(notice.c, rejected)
+                session.fail(notice.c, rejected)
         elif notice.kind == "rotate" and session is not None:
-            session._rotate(time.time())
+            session.rotate(time.time())
         elif notice.kind == "nosession" and session is not None:
-            self._reopen(session)
+            self.reopen(session)
 
     def _check_keys(self, services: list[ServiceDescription]) -> None:
         """A service that restarted with a new key needs its sessions opened again.
@@ -546,11 +576,11 @@ class Participant(Worker[Event]):
                 and desc.public_key != session.service.public_key
                 and desc.issued >= session.service.issued
             ):
-                self._reopen(session)
+                self.reopen(session)
 
     def tick(self, now: float) -> None:
         limit = 2 * self.config.max_age + 1.0
         for session in list(self._sessions.values()):
-            session._expire(now, limit, self.transport.disconnects)
-            if session._reopen_c is not None:
-                self._reopen(session)
+            session.expire(now, limit, self.transport.disconnects)
+            if session.service.name in self._reopening:
+                self.reopen(session)

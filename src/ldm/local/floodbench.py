@@ -38,12 +38,12 @@ from functools import partial
 from multiprocessing.queues import Queue
 from typing import Any
 
-from ldm.brokers import MosquittoBroker, mosquitto_acl, wait_for
+from ldm.client.participant import Participant
 from ldm.config import BrokerSettings
-from ldm.core import Core
-from ldm.messages import Envelope, ServiceSpec
-from ldm.participant import Participant
-from ldm.provider import Provider, Request
+from ldm.core.core import Core
+from ldm.local.brokers import MosquittoBroker, mosquitto_acl, wait_for
+from ldm.provider.provider import Provider, Request
+from ldm.wire.messages import Envelope, ServiceSpec
 
 __all__ = ["FloodReport", "format_report", "main", "run_flood_bench"]
 
@@ -165,7 +165,7 @@ def _flooder(
             pool.append(env.encode())
             return True
 
-        p._publish_input = keep  # type: ignore[method-assign,assignment]
+        p.publish_input = keep  # type: ignore[method-assign,assignment]
         topic = session.grant.input_topic
         out.put(("flooder-ready", None))
         go.wait()

@@ -11,6 +11,11 @@ reply payload (or None to reply later with `Provider.reply`). A batch handler in
 takes every input that waited together (up to ``max_batch``), decrypted, in order of
 arrival, and returns one reply (or None) for each: a service whose work is cheaper per
 item in bulk keeps up under load at no cost to a lone request.
+
+Pay per batch: input arrives one envelope per message or many in one batch from the
+core (`ldm.wire.batch`), cut apart on arrival; the worker takes everything that waited
+(up to ``max_batch``), and the replies to it leave together, one batch once the worker
+has handled it all, or a single message when there is one.
 """
 
 from __future__ import annotations
@@ -27,15 +32,16 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from ldm import topics
-from ldm._worker import Worker
 from ldm.config import BrokerSettings, ProviderConfig, build
-from ldm.crypto import KeyPair, SessionCipher, aad
 from ldm.errors import CryptoError, SessionError
-from ldm.hops import Hops
-from ldm.identity import SigningKey
-from ldm.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
-from ldm.transport import Connected, Event, Message, Transport, Will
+from ldm.ops.hops import Hops
+from ldm.security.crypto import KeyPair, SessionCipher, aad
+from ldm.security.identity import SigningKey
+from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
+from ldm.transport.worker import Worker
+from ldm.wire import batch, topics
+from ldm.wire.batch import Outbox
+from ldm.wire.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
 
 __all__ = ["BatchHandler", "Handler", "Provider", "ProviderStats", "Request"]
 
@@ -73,6 +79,8 @@ class ProviderStats:
     """Input whose correlation id was already seen under its key within ``max_age``."""
     handler_errors: int = 0
     """The handler raised, or its reply could not be encoded or sent."""
+    reply_batches: int = 0
+    """Messages that carried more than one reply (the rest went one per message)."""
 
 
 _REPLAY_IDS = 1024  # correlation ids remembered per participant key (within max_age)
@@ -122,8 +130,10 @@ class Provider(Worker[Event]):
             f"ldm-provider-{spec.name}",
             min(0.5, config.announce_interval / 4),
             limit=config.max_queue,
-            batch=1 if batch_handler is None else config.max_batch,
+            batch=config.max_batch,
         )
+        self._outbox = Outbox()
+        """The worker's replies, sent once it handled what waited."""
         self.config = config
         self.key = key or KeyPair()
         if identity is None:
@@ -171,6 +181,8 @@ class Provider(Worker[Event]):
         # Subscribed at QoS 2 unless set, input arrives at the QoS the core sent it with.
         qos = 2 if config.data_qos is None else config.data_qos
         self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
+        self._batch_topic = topics.provider_input_batch(spec.name)
+        self.transport.subscribe(self._batch_topic, qos)
 
     @classmethod
     def create(
@@ -218,7 +230,7 @@ class Provider(Worker[Event]):
         route = self._by_pseudonym.get(pseudonym)
         if route is None:
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
-        self._send(route, pseudonym, correlation_id, payload)
+        self._send(route, pseudonym, correlation_id, payload, now=True)
 
     @property
     def cached_ciphers(self) -> int:
@@ -229,6 +241,20 @@ class Provider(Worker[Event]):
         self.stats.dropped_overload += 1
 
     def sink(self, item: Event) -> None:
+        """The transport's sink (paho's thread): a batch is cut into its envelopes, each
+        queued as the single message it stands for; a malformed line is counted."""
+        if isinstance(item, Message) and item.topic == self._batch_topic:
+            entries, bad = batch.decode(item.payload)
+            if bad:
+                with self._count:
+                    self.stats.dropped_invalid += bad
+            for pseudonym, envelope in entries:
+                topic = topics.provider_input(self.name, pseudonym)
+                self._take(Message(topic, envelope, item.qos, False, item.source))
+            return
+        self._take(item)
+
+    def _take(self, item: Event) -> None:
         if self.hops is not None and isinstance(item, Message):
             self._arrived[id(item)] = time.time()  # paho's thread; `open` takes it
         super().sink(item)
@@ -236,23 +262,32 @@ class Provider(Worker[Event]):
     # --- worker thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
-        if isinstance(item, Connected):
-            self._announce(time.time())
-        else:
-            self._input(item)
+        self.handle_many([item])
 
     def handle_many(self, items: list[Event]) -> None:
         """Inputs that waited together go to the batch handler as one batch (a reconnect
-        among them is handled in its place)."""
-        run: list[Message] = []
-        for item in items:
-            if isinstance(item, Connected):
-                self._inputs(run)
-                run = []
-                self._announce(time.time())
-            else:
-                run.append(item)
-        self._inputs(run)
+        among them is handled in its place), or one by one to the handler; then their
+        replies leave."""
+        try:
+            if self._batch_handler is None:
+                for item in items:
+                    if isinstance(item, Connected):
+                        self._announce(time.time())
+                    else:
+                        self._input(item)
+                return
+            run: list[Message] = []
+            for item in items:
+                if isinstance(item, Connected):
+                    self._inputs(run)
+                    run = []
+                    self._announce(time.time())
+                else:
+                    run.append(item)
+            self._inputs(run)
+        finally:
+            self._outbox.flush()
+            self.stats.reply_batches = self._outbox.batches
 
     def tick(self, now: float) -> None:
         if now >= self._next_announce and self.transport.connected:
@@ -336,7 +371,7 @@ class Provider(Worker[Event]):
         """One input message -> the decrypted request and the route of its reply; None
         (and counted) if it is oversize, invalid, stale or a replay. The worker thread's
         first step, apart so `laas bench --worker-only` can time it."""
-        pseudonym = msg.topic.rsplit("/", 1)[-1]
+        pseudonym = topics.parse(msg.topic).pseudonym
         arrived = self._arrived.pop(id(msg), None) if self.hops is not None else None
         if len(msg.payload) > self.config.max_payload:
             self.stats.dropped_oversize += 1
@@ -382,11 +417,23 @@ class Provider(Worker[Event]):
         return env.encode()
 
     def _send(
-        self, route: _Reply, pseudonym: str, correlation_id: str, payload: Mapping[str, Any]
+        self,
+        route: _Reply,
+        pseudonym: str,
+        correlation_id: str,
+        payload: Mapping[str, Any],
+        now: bool = False,
     ) -> None:
+        """Seal a reply and send it: into the worker's outbox, or at once (`now`: from
+        another thread, `reply`)."""
         started = time.perf_counter()
         sealed = self.seal(route, correlation_id, payload)
         self._timed("seal", started)
-        self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
+        topic = topics.provider_reply(self.name, pseudonym)
+        if now:
+            self.transport.publish(topic, sealed, route.qos)
+        else:
+            batch_topic = topics.provider_reply_batch(self.name)
+            self._outbox.add(self.transport, batch_topic, topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1

@@ -30,10 +30,10 @@ from typing import TYPE_CHECKING, Any
 import shapely
 
 from ldm.errors import ServiceNotFound
-from ldm.messages import ServiceDescription
+from ldm.wire.messages import ServiceDescription
 
 if TYPE_CHECKING:
-    from ldm.participant import Participant, Session
+    from ldm.client.participant import Participant, Session
 
 __all__ = ["RoutedSession", "covers", "depth"]
 

@@ -23,10 +23,10 @@ import time
 
 from pydantic import ValidationError
 
-from ldm import topics
 from ldm.config import BrokerSettings
-from ldm.messages import Announcement, Withdrawal
-from ldm.transport import Event, Message, Transport
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire import topics
+from ldm.wire.messages import Announcement, Withdrawal
 
 __all__ = ["wait_until_vacant"]
 

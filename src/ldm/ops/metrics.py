@@ -42,10 +42,10 @@ from prometheus_client.platform_collector import PlatformCollector
 from prometheus_client.process_collector import ProcessCollector
 from prometheus_client.registry import Collector
 
-from ldm.core import Core
+from ldm.core.core import Core
 from ldm.errors import ConfigError
-from ldm.provider import Provider
-from ldm.transport import Transport
+from ldm.provider.provider import Provider
+from ldm.transport.mqtt import Transport
 
 __all__ = [
     "CORE_COUNTERS",
@@ -114,6 +114,11 @@ CORE_COUNTERS: dict[str, tuple[str, str]] = {
         "ldm_core_service_list_repairs",
         "Service lists on the cluster that were not this core's, replaced by its own.",
     ),
+    "batches_sent": (
+        "ldm_core_batches_sent",
+        "Messages that carried more than one envelope to a provider or another core.",
+    ),
+    "batched": ("ldm_core_batched_envelopes", "Envelopes forwarded in those batches."),
 }
 """The other `CoreStats` fields: field -> (counter name, help)."""
 
@@ -132,6 +137,10 @@ PROVIDER_COUNTERS: dict[str, tuple[str, str]] = {
     "handler_errors": (
         "ldm_provider_handler_errors",
         "Inputs left without a reply: the handler raised, or its reply could not be sent.",
+    ),
+    "reply_batches": (
+        "ldm_provider_reply_batches",
+        "Messages that carried more than one reply.",
     ),
 }
 """The other `ProviderStats` fields: field -> (counter name, help)."""

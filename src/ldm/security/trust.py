@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
-from ldm.identity import endorsement_text, verify
-from ldm.messages import Announcement, ServiceDescription
+from ldm.security.identity import endorsement_text, verify
+from ldm.wire.messages import Announcement, ServiceDescription
 
 __all__ = ["Trust"]
 

@@ -11,8 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ldm.identity import canonical
-from ldm.topics import NAME_PATTERN, TOKEN_PATTERN
+from ldm.security.identity import canonical
+from ldm.wire.topics import NAME_PATTERN, TOKEN_PATTERN
 
 __all__ = [
     "Announcement",

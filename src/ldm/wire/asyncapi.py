@@ -20,8 +20,8 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
 
-from ldm import topics
-from ldm.messages import (
+from ldm.wire import topics
+from ldm.wire.messages import (
     Announcement,
     CoreStatus,
     Envelope,
@@ -217,6 +217,19 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "A service's reply to one input (same c), encrypted for the participant.",
             _ref(Envelope),
         ),
+        "EnvelopeBatch": _message(
+            "EnvelopeBatch",
+            "Envelopes in a batch",
+            "Envelopes that waited together for one destination (ldm.wire.batch): one "
+            "line per envelope, joined by a newline, each `{pseudonym} {envelope}` with "
+            "the envelope's compact JSON as a single message carries it (InputEnvelope "
+            "or ReplyEnvelope). A lone envelope is sent as a single message instead.",
+            {
+                "type": "string",
+                "pattern": r"^[A-Za-z0-9._:-]{1,128} \{.*\}(\n[A-Za-z0-9._:-]{1,128} \{.*\})*$",
+            },
+            contentType="text/plain",
+        ),
         "Announcement": _message(
             "Announcement",
             "Service announcement",
@@ -280,6 +293,18 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             ["ReplyEnvelope"],
             "A provider's reply to a pseudonym.",
         ),
+        "providerInputBatch": _channel(
+            topics.provider_input_batch(s),
+            [svc],
+            ["EnvelopeBatch"],
+            "Input for a service, many pseudonyms' envelopes in one message.",
+        ),
+        "providerReplyBatch": _channel(
+            topics.provider_reply_batch(s),
+            [svc],
+            ["EnvelopeBatch"],
+            "A provider's replies to many pseudonyms in one message.",
+        ),
         "backboneAnnounce": _channel(
             topics.bb_announce(s),
             [backbone],
@@ -303,6 +328,18 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             [backbone],
             ["ReplyEnvelope"],
             "Replies crossing back to the participant's core.",
+        ),
+        "backboneInputBatch": _channel(
+            topics.bb_input_batch("{svc_core}", s, "{user_core}"),
+            [backbone],
+            ["EnvelopeBatch"],
+            "Input crossing to the service's core, many pseudonyms' envelopes in one message.",
+        ),
+        "backboneReplyBatch": _channel(
+            topics.bb_reply_batch("{user_core}", s),
+            [backbone],
+            ["EnvelopeBatch"],
+            "Replies crossing back to the participant's core, many in one message.",
         ),
     }
     op = _operation
@@ -359,6 +396,22 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             f"Take every participant's input by wildcard ({_DATA}).",
             0,
         ),
+        "providerReceivesInputBatches": op(
+            "provider",
+            "receive",
+            "providerInputBatch",
+            ["EnvelopeBatch"],
+            f"Take input that waited together at the core, in one message ({_DATA}).",
+            0,
+        ),
+        "providerRepliesInBatches": op(
+            "provider",
+            "send",
+            "providerReplyBatch",
+            ["EnvelopeBatch"],
+            f"Reply to the input of one batch in one message ({_DATA}).",
+            0,
+        ),
         "providerReplies": op(
             "provider",
             "send",
@@ -400,6 +453,22 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "backboneInput",
             ["InputEnvelope"],
             f"Forward input to the service's core ({_DATA}).",
+            0,
+        ),
+        "coreForwardsInputBatches": op(
+            "core",
+            "send",
+            "backboneInputBatch",
+            ["EnvelopeBatch"],
+            f"Forward input that waited together to the service's core ({_DATA}).",
+            0,
+        ),
+        "coreReturnsReplyBatches": op(
+            "core",
+            "send",
+            "backboneReplyBatch",
+            ["EnvelopeBatch"],
+            f"Return replies that waited together to the participant's core ({_DATA}).",
             0,
         ),
         "coreReturnsReplies": op(

@@ -18,7 +18,7 @@ import threading
 import time
 from typing import Generic, Protocol, TypeVar
 
-from ldm.transport import Connected
+from ldm.transport.mqtt import Connected
 
 __all__ = ["Inbox", "Worker"]
 

@@ -37,10 +37,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Self
 
-from ldm.brokers import free_port
 from ldm.config import BrokerSettings, build
 from ldm.errors import ConnectError
-from ldm.transport import Transport
+from ldm.local.brokers import free_port
+from ldm.transport.mqtt import Transport
 
 __all__ = [
     "MIN_VERSION",

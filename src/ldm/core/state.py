@@ -1,0 +1,52 @@
+"""What a core holds: the services it knows, its participants' sessions and their
+pseudonyms, and the routes of other clusters' pseudonyms (records the core's worker
+thread owns; nothing else touches them)."""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass, field
+
+from ldm.wire.messages import ServiceDescription, SessionNotice
+
+__all__ = ["Pseudonym", "Route", "ServiceEntry", "SessionState", "new_pseudonym"]
+
+
+def new_pseudonym() -> str:
+    """A fresh random pseudonym (96 bits), unlinkable to anything else."""
+    return secrets.token_urlsafe(12)
+
+
+@dataclass(slots=True)
+class ServiceEntry:
+    description: ServiceDescription
+    origin: str
+    expires: float
+    sig: str | None = None  # the announcement's signature, passed on to the backbone
+
+
+@dataclass(slots=True)
+class Pseudonym:
+    name: str
+    key: str
+    created: float
+    service_key: str  # the service's public key when this pseudonym was made
+    until: float = float("inf")  # end of grace once replaced
+
+
+@dataclass(slots=True)
+class SessionState:
+    client: str
+    service: str
+    last_seen: float
+    current: Pseudonym | None = None
+    old: list[Pseudonym] = field(default_factory=list)
+    next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
+    secret: bytes | None = None  # shared with the participant by the latest grant
+    last_grant: SessionNotice | None = None  # sent again, unchanged, for a duplicate request
+
+
+@dataclass(slots=True)
+class Route:
+    user_core: str
+    last_seen: float

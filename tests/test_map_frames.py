@@ -70,12 +70,13 @@ def _table_alone(seg: Segment) -> FloatArray:
 
 @pytest.mark.parametrize("name", MAPS)
 def test_a_loaded_map_has_the_frames_of_its_references_alone(name: str) -> None:
+    """The stacked frames of a load, and a Frame built on its own, against the equations."""
     for seg in _map(name).segments.values():
         alone = _frame_alone(np.asarray(seg.reference.coords)[:, :2])
-        frame = seg._f
-        for key in ("p", "v", "lens", "t", "n", "m", "fwd", "cum"):
-            np.testing.assert_array_equal(getattr(frame, key), alone[key], err_msg=key)
-        assert frame.winds == alone["winds"]
+        for frame in (seg._f, Frame(np.asarray(seg.reference.coords)[:, :2])):
+            for key in ("p", "v", "lens", "t", "n", "m", "fwd", "cum"):
+                np.testing.assert_array_equal(getattr(frame, key), alone[key], err_msg=key)
+            assert frame.winds == alone["winds"]
         assert seg.length == float(alone["cum"][-1])  # type: ignore[index]
 
 

@@ -75,7 +75,23 @@ class Frame:
     """
 
     def __init__(self, coords: npt.ArrayLike) -> None:
-        self._take(FrameStack([np.asarray(coords, dtype=np.float64)]), 0)
+        p = dedupe(np.asarray(coords, dtype=np.float64), MIN_PIECE)
+        if len(p) < 2 or (len(p) == 2 and math.dist(p[0], p[-1]) <= MIN_PIECE):
+            raise MapError(f"reference line is shorter than {MIN_PIECE} m")
+        v = p[1:] - p[:-1]
+        lens = np.hypot(v[:, 0], v[:, 1])
+        t = v / lens[:, None]
+        nrm = np.column_stack((t[:, 1], -t[:, 0]))
+        m = np.empty_like(p)
+        m[0], m[-1] = nrm[0], nrm[-1]
+        # M_j = (N_{j-1} + N_j) / (1 + N_{j-1}.N_j): the mitre vector, M_j.N = 1 on both sides
+        m[1:-1] = (nrm[:-1] + nrm[1:]) / (1.0 + np.sum(nrm[:-1] * nrm[1:], axis=1))[:, None]
+        # unit "forward" direction across each vertex normal line: perpendicular to M_j
+        fwd = np.column_stack((-m[:, 1], m[:, 0]))
+        fwd /= np.hypot(fwd[:, 0], fwd[:, 1])[:, None]
+        cum = np.concatenate(([0.0], np.cumsum(lens)))
+        heading = np.unwrap(np.arctan2(t[:, 1], t[:, 0]))
+        self._set(p, v, lens, t, nrm, m, fwd, cum, bool(heading.max() - heading.min() > _WINDING))
 
     @classmethod
     def _of(cls, stack: FrameStack, k: int) -> Frame:
@@ -88,25 +104,39 @@ class Frame:
         if not stack.usable[k]:
             raise MapError(f"reference line is shorter than {MIN_PIECE} m")
         a, b = int(stack.first[k]), int(stack.first[k + 1])
-        self.p, self.m, self.fwd, self.cum = (
+        self._set(
             stack.p[a:b],
-            stack.m[a:b],
-            stack.fwd[a:b],
-            stack.cum[a:b],
-        )
-        self.v, self.lens, self.t, self.n = (
             stack.v[a : b - 1],
             stack.lens[a : b - 1],
             stack.t[a : b - 1],
             stack.n[a : b - 1],
+            stack.m[a:b],
+            stack.fwd[a:b],
+            stack.cum[a:b],
+            bool(stack.winds[k]),
         )
-        self.length = float(self.cum[-1])
-        self.pieces = b - a - 1
+
+    def _set(
+        self,
+        p: FloatArray,
+        v: FloatArray,
+        lens: FloatArray,
+        t: FloatArray,
+        n: FloatArray,
+        m: FloatArray,
+        fwd: FloatArray,
+        cum: FloatArray,
+        winds: bool,
+    ) -> None:
+        self.p, self.v, self.lens, self.t, self.n, self.m, self.fwd = p, v, lens, t, n, m, fwd
+        self.cum = cum
+        self.length = float(cum[-1])
+        self.pieces = len(lens)
         # Where the reference's heading spans more than _WINDING, vertex normal lines are
         # no longer ordered along it (a point can be past a later line and before an
         # earlier one), so the quad is not found by bisection: every quad between two
         # lines the point lies between is tried (`_frame_winding`).
-        self.winds = bool(stack.winds[k])
+        self.winds = winds
         # python-float copies for the scalar path (much faster than numpy scalars)
         self._p: list[list[float]] = self.p.tolist()
         self._v: list[list[float]] = self.v.tolist()
@@ -428,9 +458,11 @@ class FrameStack:
     Vertex ``g`` of the stack is vertex ``g - first[k]`` of frame ``k``. Arrays of pieces
     (``v``, ``lens``, ``t``, ``n``) are indexed by the vertex that starts the piece, so the
     last vertex of each frame has a row of NaN there. Every value comes from the same
-    elementwise arithmetic as for a frame alone (sums run in order within each frame), so
-    ``stack.frame(k)`` equals ``Frame(refs[k])`` exactly. A reference shorter than
-    :data:`MIN_PIECE` has no frame: ``usable[k]`` is False and ``frame(k)`` raises.
+    elementwise arithmetic as :class:`Frame` uses for one polyline (sums run in order within
+    each frame, np.unwrap's steps are repeated), so ``stack.frame(k)`` equals
+    ``Frame(refs[k])`` bit for bit (tests/test_map_frames.py holds it to that). A reference
+    shorter than :data:`MIN_PIECE` has no frame: ``usable[k]`` is False and ``frame(k)``
+    raises :class:`MapError`.
     """
 
     def __init__(self, refs: Sequence[npt.ArrayLike]) -> None:
@@ -626,6 +658,8 @@ def _runs_cumsum(values: FloatArray, lengths: npt.NDArray[np.intp]) -> FloatArra
     """np.cumsum of each run of `values` (consecutive runs of `lengths`), each summed in
     order from its start, exactly as np.cumsum of the run alone: runs of about the same
     length share a zero-padded table that is summed along its rows."""
+    if len(lengths) == 1:  # one run: the plain sum
+        return cast(FloatArray, np.cumsum(values))
     out = np.empty_like(values)
     starts = np.cumsum(lengths) - lengths
     size = np.ceil(np.log2(np.maximum(lengths, 1))).astype(np.intp)

@@ -227,7 +227,7 @@ class Segment:
     def tangent_many(self, s: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`tangent`: (n,) stations -> (n, 2)."""
         f = self._f
-        return cast(FloatArray, f.t[f.piece_array(np.asarray(s, dtype=np.float64).reshape(-1))])
+        return f.t[f.piece_array(np.asarray(s, dtype=np.float64).reshape(-1))]
 
     def heading(self, s: float) -> float:
         """Reference direction at s in degrees from (grid) north, clockwise, in [0, 360)."""

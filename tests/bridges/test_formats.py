@@ -12,6 +12,7 @@ Sources of the payloads:
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import json
 import logging
 import math
@@ -29,8 +30,8 @@ from laas.bridges.cam import (
     keeps_left,
     read_cam,
 )
-from laas.bridges.gpsd import parse_address, tpv_fix
-from laas.bridges.nmea import KNOT, nmea_fixes, nmea_sentences
+from laas.bridges.gpsd import paced, parse_address, tpv_epochs, tpv_fix
+from laas.bridges.nmea import GPS_ROLLOVER, KNOT, nmea_fixes, nmea_sentences
 from laas.bridges.owntracks import (
     LAAS_FIELD,
     answer_location,
@@ -384,3 +385,115 @@ def test_the_cam_confidence_ellipse_lies_along_the_road_with_both_accuracies() -
     assert (turned.semi_major_orientation / 10.0 - bearing) % 180.0 == pytest.approx(90.0, abs=0.15)
     off = confidence_ellipse(hdmap, across.model_copy(update={"segment": None, "lane": None}))
     assert off.semi_major_confidence == off.semi_minor_confidence == round(244.77 / math.sqrt(2))
+
+
+# --- NMEA as real receivers send it ---------------------------------------------------
+
+
+def _drive(n: int, step_ms: int = 1000, t0_ms: int = 1_700_000_000_000) -> list[GpsMeasurement]:
+    """`n` fixes of a car heading north-east at 10 m/s, `step_ms` apart."""
+    step = step_ms / 1000.0 * 10.0 / math.sqrt(2.0)  # m north and east per step
+    return [
+        GpsMeasurement(
+            timestamp=t0_ms + i * step_ms,
+            latitude=53.55 + i * step / 111_195.0,
+            longitude=9.97 + i * step / (111_195.0 * math.cos(math.radians(53.55))),
+            altitude=12.5,
+            heading=45.0,
+            speed=10.0,
+            accuracy=1.5,
+        )
+        for i in range(n)
+    ]
+
+
+def _sentences(fix: GpsMeasurement) -> dict[str, str]:
+    return {s[3:6]: s for s in nmea_sentences(fix)}
+
+
+def test_gga_and_gst_after_the_rmc_of_their_epoch_are_kept() -> None:
+    """u-blox, Garmin and NaviLock send RMC first, then GGA and GST of the same epoch."""
+    fixes = _drive(3)
+    lines = [_sentences(f)[k] for f in fixes for k in ("RMC", "GGA", "GST")]
+    read = list(nmea_fixes(lines))
+    assert [r.timestamp for r in read if isinstance(r, GpsMeasurement)] == [
+        f.timestamp for f in fixes
+    ]
+    assert all(isinstance(r, GpsMeasurement) and r.altitude == 12.5 for r in read)
+    assert all(
+        isinstance(r, GpsMeasurement) and r.accuracy == pytest.approx(1.5, abs=0.01) for r in read
+    )
+
+
+def test_a_10_hz_receiver_with_rmc_once_a_second_gets_every_epoch_through() -> None:
+    """GGA at every epoch (10 Hz), RMC at whole seconds: 40 epochs, 40 fixes, each with
+    the speed and course of the latest RMC."""
+    fixes = _drive(40, step_ms=100)
+    lines = []
+    for f in fixes:
+        s = _sentences(f)
+        lines += [s["GGA"]] + ([s["RMC"]] if f.timestamp % 1000 == 0 else [])
+    read = [r for r in nmea_fixes(lines) if isinstance(r, GpsMeasurement)]
+    assert [r.timestamp for r in read] == [f.timestamp for f in fixes]
+    assert all(r.speed == pytest.approx(10.0, abs=0.01) and r.heading == 45.0 for r in read)
+
+
+def test_a_gga_only_receiver_is_dated_by_the_clock_and_its_motion_derived() -> None:
+    fixes = _drive(5)
+    lines = [_sentences(f)["GGA"] for f in fixes]
+    now = fixes[-1].timestamp / 1000.0 + 0.5
+    read = [r for r in nmea_fixes(lines, now=now) if isinstance(r, GpsMeasurement)]
+    assert [r.timestamp for r in read] == [f.timestamp for f in fixes]
+    assert read[0].speed == 0.0  # nothing before it to derive from
+    assert all(r.speed == pytest.approx(10.0, rel=0.01) for r in read[1:])
+    assert all(r.heading == pytest.approx(45.0, abs=0.5) for r in read[1:])
+    # without a clock a GGA alone has no date: said, not guessed
+    (problem, *_rest) = list(nmea_fixes(lines))
+    assert isinstance(problem, Malformed) and "date" in str(problem)
+
+
+def test_the_gps_week_rollover_is_corrected_against_the_clock() -> None:
+    """A receiver whose 10-bit week count rolled over in April 2019 reports 1999: moved
+    1024 weeks forward against the clock, as gpsd does; a historical log read without a
+    clock keeps its date (the 1994 example of "NMEA Revealed")."""
+    true = dt.datetime(2019, 7, 1, 9, 30, tzinfo=dt.UTC)
+    reported = true - GPS_ROLLOVER  # 1999-11-15
+    assert reported.year == 1999
+    fix = _drive(1, t0_ms=round(reported.timestamp() * 1000))[0]
+    lines = list(_sentences(fix).values())
+    now = (true + dt.timedelta(seconds=2)).timestamp()
+    (read,) = nmea_fixes(lines, now=now)
+    assert isinstance(read, GpsMeasurement)
+    assert read.timestamp == round(true.timestamp() * 1000)
+    (kept,) = nmea_fixes(lines)
+    assert isinstance(kept, GpsMeasurement) and kept.timestamp == fix.timestamp
+    (old,) = nmea_fixes([NMEA_RMC])
+    assert isinstance(old, GpsMeasurement) and old.timestamp == 764426119000
+
+
+def test_gpsd_reports_of_one_epoch_are_sent_once_the_most_complete() -> None:
+    """gpsd reports an epoch as its sentences arrive, the least complete first."""
+    full = {**GPSD_TPV}
+    partial = {k: v for k, v in GPSD_TPV.items() if k not in ("epx", "epy", "alt")}
+    later = {**GPSD_TPV, "time": "2011-03-20T06:52:00.12Z"}
+    later_partial = {k: v for k, v in later.items() if k != "track"}
+    kept = list(tpv_epochs([partial, full, full, later_partial, {**later_partial, "epx": 3.0}]))
+    assert kept == [full, {**later_partial, "epx": 3.0}]
+
+
+def test_a_recorded_log_is_paced_by_its_own_timestamps_moved_to_now() -> None:
+    clock = Clock(1_800_000_000.0)
+    waits: list[float] = []
+
+    def sleep(s: float) -> None:
+        waits.append(s)
+        clock.now += s
+
+    fixes = _drive(4, step_ms=1000)
+    out = list(paced([fixes[0], Malformed("x"), *fixes[1:]], clock=clock, sleep=sleep))
+    sent = [f for f in out if isinstance(f, GpsMeasurement)]
+    assert [f.timestamp for f in sent] == [1_800_000_000_000 + 1000 * i for i in range(4)]
+    assert waits == pytest.approx([1.0, 1.0, 1.0])
+    clock.now, waits[:] = 1_800_000_100.0, []
+    list(paced(fixes, speedup=4.0, clock=clock, sleep=sleep))
+    assert waits == pytest.approx([0.25, 0.25, 0.25])

@@ -217,12 +217,16 @@ def test_laas_gpsd_reads_an_nmea_file_and_prints_the_answers(
     log.write_text("\r\n".join(lines) + "\r\n")
     trust = ["--service-key", deployment.trust["service_keys"]["laas"]]
     trust += ["--core-key", deployment.trust["core_key"]]
-    code = main(["gpsd", "--nmea", str(log), "--cluster", deployment.user_url, *trust])
+    args = ["gpsd", "--nmea", str(log), "--cluster", deployment.user_url, "--speedup", "10"]
+    started = time.monotonic()
+    code = main([*args, *trust])
     out, err = capsys.readouterr()
     assert code == 0, err
+    assert time.monotonic() - started >= 0.4  # paced: 4 s of the log at 10x
+    assert f"replaying {log} at 10x the pace of its own timestamps, moved to now" in err
     answers = [CorrectedPosition.model_validate_json(line) for line in out.splitlines()]
     assert len(answers) == 5 and all(a.segment is not None for a in answers)
-    assert "5 fixes sent, 5 answered, 1 malformed" in err
+    assert "5 fixes sent, 5 answered, 0 refused, 0 lost, 1 malformed" in err
     assert main(["gpsd", "--cluster", deployment.user_url]) == 2
     assert "give one source" in capsys.readouterr().err
 
@@ -282,3 +286,20 @@ def test_laas_cam_serves_its_metrics_and_logs_json(
     records = [line for line in bridge.log().splitlines() if line.startswith("{")]
     assert records, bridge.log()
     assert all(json.loads(line)["component"] == "laas-cam" for line in records)
+
+
+def test_a_receiver_restarted_under_its_name_is_told_why_its_fixes_are_refused(
+    deployment: LocalDeployment, car: list[GpsMeasurement], caplog: pytest.LogCaptureFixture
+) -> None:
+    """The user core keeps a participant's session past its restart and refuses a new
+    ephemeral key within its rekey interval: the bridge says so, and what to do."""
+    fixes = now_shifted(car[:4], lead_s=10.0)
+    with pool_for(deployment) as first:
+        run_receiver(fixes[:2], first, "gpsd.restarted", lambda _a: None)
+        assert first.drain(10) and first.stats.answered == 2
+    with caplog.at_level(logging.WARNING), pool_for(deployment) as again:
+        run_receiver(fixes[2:], again, "gpsd.restarted", lambda _a: None)
+        assert again.drain(10)
+    assert again.stats.answered == 0 and again.stats.lost == 2
+    assert "still holds the session of an earlier participant of this name" in caplog.text
+    assert "restart under another name" in caplog.text

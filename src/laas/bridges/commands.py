@@ -7,14 +7,15 @@ import logging
 import os
 import socket
 import sys
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 from laas.bridges.metrics import watch_bridge
-from laas.bridges.pool import Answer, DevicePool, PoolConfig
+from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
 from laas.errors import ConfigError
-from laas.models import CorrectedPosition
+from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings
 from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
@@ -146,21 +147,32 @@ def _print_answer(answer: Answer) -> None:
 
 
 def _cmd_gpsd(a: argparse.Namespace) -> int:
-    from laas.bridges.gpsd import gpsd_fixes, parse_address, run_receiver
+    from laas.bridges.gpsd import gpsd_fixes, paced, parse_address, run_receiver
     from laas.bridges.nmea import read_nmea_file
 
     _logging(a)
     if (a.gpsd is None) == (a.nmea is None):
         raise ConfigError("give one source: --gpsd HOST:PORT or --nmea FILE_OR_DEVICE")
+    if a.speedup <= 0:
+        raise ConfigError(f"--speedup {a.speedup:g}: give a factor above 0")
     own = _own_broker(a)
+    fixes: Iterable[GpsMeasurement | Malformed]
     if a.gpsd is not None:
         try:
             host, port = parse_address(a.gpsd)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         fixes = gpsd_fixes(host, port)
-    else:
-        fixes = read_nmea_file(a.nmea)
+    elif a.nmea.is_file():  # a recorded log: at its own pace, its times moved to now
+        fixes = paced(read_nmea_file(a.nmea, now=time.time()), speedup=a.speedup)
+        print(
+            f"laas gpsd: replaying {a.nmea} at {a.speedup:g}x the pace of its own "
+            "timestamps, moved to now",
+            file=sys.stderr,
+            flush=True,
+        )
+    else:  # a serial device: live, dated against this machine's clock (week rollover)
+        fixes = read_nmea_file(a.nmea, now=time.time())
     with _pool(a, own) as pool:
         try:
             sent = run_receiver(fixes, pool, a.name, _print_answer)
@@ -169,9 +181,17 @@ def _cmd_gpsd(a: argparse.Namespace) -> int:
         pool.drain(a.reply_timeout)
         s = pool.stats
         print(
-            f"laas gpsd: {sent} fixes sent, {s.answered} answered, {s.malformed} malformed",
+            f"laas gpsd: {sent} fixes sent, {s.answered} answered, {s.refused} refused, "
+            f"{s.lost} lost, {s.malformed} malformed",
             file=sys.stderr,
         )
+        if sent == 0:
+            print(
+                "laas gpsd: the receiver gave no fix: no valid RMC (status A) nor GGA "
+                "with a fix quality above 0 (or, from gpsd, no TPV of mode 2 or 3); is "
+                "the antenna outside, and is it NMEA 0183?",
+                file=sys.stderr,
+            )
     return 0
 
 
@@ -193,7 +213,12 @@ def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
     p = sub.add_parser("gpsd", help="a receiver (gpsd or NMEA) as one participant")
     connection_args(p, "LAAS")
     p.add_argument("--gpsd", help="gpsd daemon, HOST:PORT (e.g. localhost:2947)")
-    p.add_argument("--nmea", type=Path, help="NMEA 0183 file or serial device (RMC, GGA, GST)")
+    p.add_argument(
+        "--nmea",
+        type=Path,
+        help="NMEA 0183 serial device, or a recorded log replayed at its own pace (RMC, GGA, "
+        "GST, VTG)",
+    )
     p.add_argument(
         "--name",
         default=f"gpsd.{socket.gethostname().split('.')[0]}",
@@ -201,6 +226,13 @@ def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
     )
     p.add_argument(
         "--reply-timeout", type=float, default=10.0, help="wait this long for the last answers, s"
+    )
+    p.add_argument(
+        "--speedup",
+        type=float,
+        default=1.0,
+        help="--nmea FILE (a recorded log): replay this much faster than its own timestamps "
+        "(default 1; above 1 the worker must allow it: laas worker --max-speedup)",
     )
     _pool_args(p)
     p.set_defaults(func=_cmd_gpsd)

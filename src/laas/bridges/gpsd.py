@@ -11,8 +11,15 @@ each TPV report into a fix (gpsd_json(5), https://gpsd.io/gpsd_json.html):
         accuracy = hypot(sigma_x, sigma_y)            (a 1-sigma horizontal radius)
     mode < 2              -> no fix, skipped
 
-`run_receiver` sends a stream of fixes as one device of a `DevicePool` and hands each
-answer to a callback (`laas gpsd` prints them as JSON Lines).
+gpsd reports an epoch several times as its sentences arrive, the least complete first
+(13 TPVs for 9 epochs of one receiver). `tpv_epochs` keeps one report per epoch (per
+`time`): the first complete one (mode 3 with every field above), else the last, which
+gpsd has merged the most into, once the next epoch begins.
+
+`paced` sends a recorded log's fixes at the pace of their own timestamps, moved to the
+wall clock (the worker refuses fixes 10 minutes old, and the user core a burst of
+more than 20), and `run_receiver` sends a stream of fixes as one device of a
+`DevicePool` and hands each answer to a callback (`laas gpsd` prints them as JSON Lines).
 """
 
 from __future__ import annotations
@@ -21,15 +28,24 @@ import datetime as dt
 import json
 import math
 import socket
+import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from laas.bridges.pool import Answer, DevicePool, Malformed
 from laas.models import GpsMeasurement, problems
 
-__all__ = ["Tpv", "gpsd_fixes", "parse_address", "run_receiver", "tpv_fix"]
+__all__ = [
+    "Tpv",
+    "gpsd_fixes",
+    "paced",
+    "parse_address",
+    "run_receiver",
+    "tpv_epochs",
+    "tpv_fix",
+]
 
 Z95 = 1.96  # a normal variable is within 1.96 sigma 95 % of the time
 WATCH = b'?WATCH={"enable":true,"json":true};\n'
@@ -75,6 +91,58 @@ def tpv_fix(report: dict[str, object]) -> GpsMeasurement | None:
     )
 
 
+_COMPLETE = ("lat", "lon", "alt", "track", "speed", "epx", "epy")
+
+
+def tpv_epochs(reports: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+    """One TPV report per epoch (per ``time``), in order: the first complete one, else
+    the last of its epoch (emitted when the next epoch's first report arrives, or at the
+    end). Reports without a time pass through."""
+    pending: dict[str, Any] | None = None
+    sent_time: object = None
+    for report in reports:
+        when = report.get("time")
+        if when is None:
+            yield report
+            continue
+        if when == sent_time:
+            continue  # its epoch already went out complete
+        if pending is not None and pending.get("time") != when:
+            yield pending
+        pending = report
+        if report.get("mode") == 3 and all(report.get(k) is not None for k in _COMPLETE):
+            yield report
+            sent_time, pending = when, None
+    if pending is not None:
+        yield pending
+
+
+def paced(
+    fixes: Iterable[GpsMeasurement | Malformed],
+    *,
+    speedup: float = 1.0,
+    clock: Callable[[], float] = time.time,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Iterator[GpsMeasurement | Malformed]:
+    """A recorded log's fixes, each when its time comes: the first now, a later one
+    (t - t_first) / speedup seconds after it, its timestamp moved by the same offset as
+    the first's to now (the spacing kept). A Malformed passes at once."""
+    start: float | None = None
+    first = 0
+    for item in fixes:
+        if isinstance(item, Malformed):
+            yield item
+            continue
+        if start is None:
+            start, first = clock(), item.timestamp
+        due = start + (item.timestamp - first) / 1000.0 / speedup
+        wait = due - clock()
+        if wait > 0:
+            sleep(wait)
+        shift = round(start * 1000.0) - first
+        yield item.model_copy(update={"timestamp": item.timestamp + shift})
+
+
 def parse_address(address: str) -> tuple[str, int]:
     """``HOST:PORT`` (gpsd's default port 2947 when left out)."""
     host, _, port = address.rpartition(":") if ":" in address else (address, "", "2947")
@@ -87,17 +155,13 @@ def gpsd_fixes(
     host: str, port: int, *, timeout: float = 10.0
 ) -> Iterator[GpsMeasurement | Malformed]:
     """Fixes from a gpsd daemon until it closes the connection (or `timeout` s of silence)."""
+    problems: list[Malformed] = []
     with socket.create_connection((host, port), timeout=timeout) as sock:
         sock.sendall(WATCH)
         with sock.makefile("r", encoding="utf-8", errors="replace") as lines:
-            for line in _until_silent(lines):
-                try:
-                    report = json.loads(line)
-                except ValueError:
-                    yield Malformed("gpsd sent a line that is not JSON")
-                    continue
-                if not isinstance(report, dict) or report.get("class") != "TPV":
-                    continue  # VERSION, DEVICES, WATCH, SKY, ...
+            for report in tpv_epochs(_tpv_reports(_until_silent(lines), problems)):
+                yield from problems
+                problems.clear()
                 try:
                     fix = tpv_fix(report)
                 except Malformed as exc:
@@ -105,6 +169,19 @@ def gpsd_fixes(
                     continue
                 if fix is not None:
                     yield fix
+            yield from problems
+
+
+def _tpv_reports(lines: Iterable[str], problems: list[Malformed]) -> Iterator[dict[str, Any]]:
+    """The TPV reports among gpsd's lines; a line that is not JSON goes to `problems`."""
+    for line in lines:
+        try:
+            report = json.loads(line)
+        except ValueError:
+            problems.append(Malformed("gpsd sent a line that is not JSON"))
+            continue
+        if isinstance(report, dict) and report.get("class") == "TPV":
+            yield report  # not VERSION, DEVICES, WATCH, SKY, ...
 
 
 def _until_silent(lines: Iterator[str]) -> Iterator[str]:

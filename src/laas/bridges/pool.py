@@ -38,7 +38,7 @@ from laas.discovery import wait_for_service
 from laas.errors import LaasError
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.service import SERVICE_NAME
-from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound
+from ldm import BrokerSettings, Participant, RequestRejected, RoutedSession, ServiceNotFound
 from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
@@ -358,6 +358,17 @@ class DevicePool:
         error = reply.exception()
         if error is not None:
             self.stats.lost += 1
+            if isinstance(error, RequestRejected) and "ephemeral key" in str(error):
+                self.limiter.warn(
+                    f"{device.name}|rekey",
+                    "device %s: the user core still holds the session of an earlier "
+                    "participant of this name (a restart within its rekey interval) and "
+                    "refuses the new one's fixes until that passes: %s; wait, or restart "
+                    "under another name",
+                    device.name,
+                    error,
+                )
+                return
             self.limiter.warn(
                 f"{device.name}|lost", "device %s: a fix got no answer: %s", device.name, error
             )

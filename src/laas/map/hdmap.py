@@ -129,7 +129,7 @@ class Segment:
     def _table(self) -> FloatArray:
         """d of each lane (columns) at equally spaced stations (rows); built on first use."""
         if self._lane_d is None:
-            prepare([self])
+            prepare([self], surfaces=False)
         return cast(FloatArray, self._lane_d)
 
     # -- attributes --------------------------------------------------------------------------
@@ -155,7 +155,7 @@ class Segment:
     def area(self) -> Polygon:
         """The element's surface: lane centre lines buffered by half their width, flat caps.
 
-        Built on first use (the loader validates the lanes first, then builds it).
+        Built on first use, or by the loader for the whole map at once (:func:`prepare`).
         """
         if self._area is None:
             self._area = self._build_area(_surfaces([self])[0])
@@ -243,9 +243,9 @@ class Segment:
         """
         if not math.isfinite(s):
             raise ValueError(f"station must be finite, got {s}")
-        table = self._table
-        if table.shape[1] == 1:  # one lane: d = 0 everywhere
+        if len(self._lanes) == 1:  # one lane: d = 0 everywhere
             return np.zeros(1)
+        table = self._table
         length = self.length
         # pos = clamp(s, 0, length) / length * (rows - 1);  d = D_i + f (D_{i+1} - D_i)
         pos = min(max(s, 0.0), length) / length * (len(table) - 1)
@@ -299,13 +299,14 @@ class Prepared:
     surface: Any
 
 
-def prepare(segments: Sequence[Segment]) -> list[Prepared]:
+def prepare(segments: Sequence[Segment], surfaces: bool = True) -> list[Prepared]:
     """Build the frames and lane-offset tables of many segments together, as a map load does.
 
     One :class:`FrameStack` holds every reference; every lane but lane 0 is densified to
     ``_OFFSET_STEP`` and put in its segment's frame in one call, and each lane's offset table
     column is ``d(s)`` interpolated at equally spaced stations. A segment alone builds the
-    same on first use (through this function, with a list of one).
+    same on first use (through this function, with a list of one). Without `surfaces`,
+    no surface is built (``Prepared.surface`` is None).
     """
     if not segments:
         return []
@@ -323,9 +324,9 @@ def prepare(segments: Sequence[Segment]) -> list[Prepared]:
         cut = np.searchsorted(line_of, np.arange(len(lines) + 1)).tolist()
         parts = [sd[lo:hi] for lo, hi in itertools.pairwise(cut)]
     out: list[Prepared] = []
-    surfaces = _surfaces(segments)
+    made = _surfaces(segments) if surfaces else [None] * len(segments)
     j = 0
-    for seg, surface in zip(segments, surfaces, strict=True):
+    for seg, surface in zip(segments, made, strict=True):
         mine = tuple(parts[j : j + len(seg.lanes) - 1])
         j += len(mine)
         out.append(Prepared(mine, surface))

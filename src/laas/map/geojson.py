@@ -452,7 +452,8 @@ def _make_segments(
     first = np.cumsum([len(lanes) for _, lanes in groups]) - [len(lanes) for _, lanes in groups]
     start = np.cumsum(counts) - counts
     refs = [xy[start[k] : start[k] + counts[k]] for k in first]  # each lane 0
-    turns, vertices = FrameStack(refs).sharpest_turns()
+    stack = FrameStack(refs)
+    turns, vertices = stack.sharpest_turns()
     errors: dict[int, MapError] = {}
     built: list[tuple[int, Segment]] = []
     for g, (seg_id, lanes) in enumerate(groups):
@@ -483,7 +484,8 @@ def _make_segments(
         except MapError as exc:
             errors[g] = MapError(f"{_where(source, ref.feature, seg_id)}: {exc}")
     done: dict[int, Segment] = {}
-    for (g, seg), prep in zip(built, prepare([seg for _, seg in built]), strict=True):
+    whole = stack if len(built) == len(groups) else None  # every element built: its frames
+    for (g, seg), prep in zip(built, prepare([s for _, s in built], stack=whole), strict=True):
         seg_id, lanes = groups[g]
         try:
             _check_side_by_side(source, seg, lanes, prep.samples)

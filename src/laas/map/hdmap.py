@@ -299,18 +299,24 @@ class Prepared:
     surface: Any
 
 
-def prepare(segments: Sequence[Segment], surfaces: bool = True) -> list[Prepared]:
+def prepare(
+    segments: Sequence[Segment], surfaces: bool = True, stack: FrameStack | None = None
+) -> list[Prepared]:
     """Build the frames and lane-offset tables of many segments together, as a map load does.
 
     One :class:`FrameStack` holds every reference; every lane but lane 0 is densified to
     ``_OFFSET_STEP`` and put in its segment's frame in one call, and each lane's offset table
     column is ``d(s)`` interpolated at equally spaced stations. A segment alone builds the
     same on first use (through this function, with a list of one). Without `surfaces`,
-    no surface is built (``Prepared.surface`` is None).
+    no surface is built (``Prepared.surface`` is None). `stack`: a :class:`FrameStack` of
+    exactly these segments' references, in order, if the caller has one.
     """
     if not segments:
         return []
-    stack = FrameStack([shapely.get_coordinates(seg.reference) for seg in segments])
+    if stack is None:
+        stack = FrameStack([shapely.get_coordinates(seg.reference) for seg in segments])
+    elif stack.count != len(segments):
+        raise ValueError(f"a stack of {stack.count} frames for {len(segments)} segments")
     for k, seg in enumerate(segments):
         if seg._frame is None:
             seg._from = (stack, k)

@@ -240,7 +240,8 @@ def test_the_scrape_config_covers_every_compose_service_with_metrics() -> None:
         "worker-1of2-standby",
         "worker-2of2-standby",
     }
-    assert set(serving) == {"core-user", "core-service", "worker", *cluster}
+    bridges = {"owntracks", "cam"}  # profile `bridges`
+    assert set(serving) == {"core-user", "core-service", "worker", *cluster, *bridges}
     scrape = yaml.safe_load((root / "deploy" / "prometheus.yml").read_text())
     targets = {
         target
@@ -249,3 +250,33 @@ def test_the_scrape_config_covers_every_compose_service_with_metrics() -> None:
         for target in group["targets"]
     }
     assert targets == set(serving.values())
+
+
+def test_a_local_deployment_serves_its_cores_and_workers_metrics(hamburg_map: HdMap) -> None:
+    """`LocalDeployment(metrics_port=0)` (and so `laas demo --metrics-port`): one server
+    for both cores and every worker of the process, ready while they are connected."""
+    from laas.run.deployment import LocalDeployment
+    from laas.run.participants import run_participants
+    from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
+
+    full = simulate(hamburg_map, hamburg_scenario(), ErrorModel(), 0)
+    trace = dataclasses.replace(full, fixes=tuple(f for f in full.fixes if f.user == "car")[:10])
+    with LocalDeployment(hamburg_map, brokers="embedded", regions=2, metrics_port=0) as d:
+        base = d.metrics_url
+        assert base is not None and base.startswith("http://127.0.0.1:")
+        base = base.removesuffix("/metrics")
+        assert ready(base)
+        live = run_participants(d.user_url, trace, speedup=20.0, **d.trust)
+        m = Scrape(base)
+        assert live.answered == 10
+        assert m.value("laas_fixes_total", outcome="answered") == 10
+        assert {name for _, name in m.labels() if name.startswith("laas-")} >= {
+            "laas-1of2",
+            "laas-2of2",
+        }
+        assert m.value("ldm_core_messages_total") > 0
+    assert d.metrics_url is None
+    from laas.cli import build_parser
+
+    demo = build_parser().parse_args(["demo", "--metrics-port", "0"])
+    assert (demo.metrics_port, demo.metrics_host) == (0, "127.0.0.1")

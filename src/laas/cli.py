@@ -216,6 +216,8 @@ def _cmd_demo(a: argparse.Namespace) -> int:
         brokers=a.brokers,
         http_port=a.http,
         http_host=a.http_host,
+        metrics_port=a.metrics_port,
+        metrics_host=a.metrics_host,
     )
 
 
@@ -567,6 +569,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="broker kind (auto: Mosquitto if installed, else the embedded broker)",
     )
     _http_args(p, default=0)
+    p.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        help="serve the cores' and the worker's /metrics, /healthz, /readyz on this port "
+        "(0: a free one; default: none)",
+    )
+    p.add_argument("--metrics-host", default="127.0.0.1", help="address of the metrics server")
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("bench", help="latency and throughput through the full LDM topology")

@@ -43,9 +43,12 @@ def run_demo(
     brokers: BrokerChoice = "auto",
     http_port: int = 0,
     http_host: str = "127.0.0.1",
+    metrics_port: int | None = None,
+    metrics_host: str = "127.0.0.1",
 ) -> int:
     """Run the demo; print the table; write the pictures to `out`. The live map is served
-    on `http_host`:`http_port` (0: a free port) while the road users run."""
+    on `http_host`:`http_port` (0: a free port) while the road users run, and with
+    `metrics_port` the cores' and the worker's metrics (/metrics, /healthz, /readyz)."""
     scenario = hamburg_scenario()
     hdmap = HdMap.load(scenario.map)
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
@@ -56,7 +59,9 @@ def run_demo(
         f"fixes, common GNSS error ({errors.bias_east:+.0f} m E, {errors.bias_north:+.0f} m N), "
         f"sigma_pos {sigma_pos} m"
     )
-    with LocalDeployment(hdmap, config, brokers=brokers) as deployment:
+    with LocalDeployment(
+        hdmap, config, brokers=brokers, metrics_port=metrics_port, metrics_host=metrics_host
+    ) as deployment:
         print(
             f"started 3 {deployment.kind} brokers (user {deployment.user_url}, inter-cluster, "
             "service), 2 LDM cores and the laas worker; participants pin the worker's "
@@ -69,6 +74,8 @@ def run_demo(
         )
         try:
             print(f"live map: {live_map.url} (while the road users run)", flush=True)
+            if deployment.metrics_url is not None:
+                print(f"metrics: {deployment.metrics_url} (and /healthz, /readyz)", flush=True)
             print(f"running the road users as LDM participants at {speedup:g}x real time:")
             live = run_participants(
                 deployment.user_url,

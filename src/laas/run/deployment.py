@@ -32,6 +32,7 @@ from laas.service import LaasService, WorkerConfig, start_worker
 from ldm import Core, Provider
 from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
 from ldm.ops.hops import Hops
+from ldm.ops.metrics import Metrics, MetricsServer
 from ldm.security.identity import SigningKey
 
 __all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
@@ -65,6 +66,8 @@ class LocalDeployment:
         hops: Hops | None = None,
         regions: int = 1,
         limits: WorkerConfig = SIMULATION_LIMITS,
+        metrics_port: int | None = None,
+        metrics_host: str = "127.0.0.1",
     ) -> None:
         if worker_process and not Path(hdmap.source).is_file():
             raise ConfigError(
@@ -74,6 +77,12 @@ class LocalDeployment:
         self.config = config
         self.limits = limits
         """The workers' limits on their input (`laas.service.WorkerConfig`)."""
+        self.metrics_port = metrics_port
+        self.metrics_host = metrics_host
+        self.metrics: Metrics | None = None
+        """With `metrics_port`: one registry of both cores and the workers in this
+        process, served at `metrics_url` (/metrics, /healthz, /readyz) while it runs."""
+        self._metrics_server: MetricsServer | None = None
         self.kind: BrokerKind = (
             ("mosquitto" if find_mosquitto() else "embedded") if brokers == "auto" else brokers
         )
@@ -159,12 +168,35 @@ class LocalDeployment:
                     self.workers.append((provider, service))
             if self.workers:
                 self.provider, self.service = self.workers[0]
+            if self.metrics_port is not None:
+                self._serve_metrics(self.metrics_port)
         except BaseException:
             self.stop()
             raise
         return self
 
+    @property
+    def metrics_url(self) -> str | None:
+        """Where /metrics is served (`metrics_port`), while the deployment runs."""
+        return None if self._metrics_server is None else self._metrics_server.url
+
+    def _serve_metrics(self, port: int) -> None:
+        """Both cores and the workers of this process in one registry, served on `port`
+        (a worker process serves none: `laas worker --metrics-port` does)."""
+        from laas.metrics import watch_worker
+
+        metrics = Metrics()
+        for core in self.cores.values():
+            metrics.watch_core(core)
+        for provider, service in self.workers:
+            watch_worker(metrics, provider, service)
+        self.metrics = metrics
+        self._metrics_server = metrics.serve(self.metrics_host, port)
+
     def stop(self) -> None:
+        if self._metrics_server is not None:
+            self._metrics_server.stop()
+            self._metrics_server = None
         for provider, _ in self.workers:
             provider.stop()
         self.workers.clear()

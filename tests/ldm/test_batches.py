@@ -1,6 +1,7 @@
 """Batches between the cores and between a core and its provider (`ldm.wire.batch`):
 order and replies kept per participant, a broker restart survived, a malformed line
-costing only itself. Real brokers (embedded and Mosquitto), no mocks."""
+costing only itself; and the hand-off of what waited. Real brokers (embedded and
+Mosquitto), no mocks."""
 
 from __future__ import annotations
 
@@ -10,12 +11,16 @@ from concurrent.futures import Future
 from typing import Any
 
 import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+from paho.mqtt.client import topic_matches_sub as paho_matches
 
 from ldm import KeyPair, Provider, Request, ServiceSpec
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
 from ldm.security.crypto import aad
-from ldm.transport.mqtt import Event, Message, Transport
+from ldm.transport.intake import FairQueue
+from ldm.transport.mqtt import Event, Message, Transport, matches
 from ldm.wire import batch, topics
 from ldm.wire.messages import Envelope
 
@@ -191,3 +196,36 @@ def test_a_core_forwards_the_good_envelopes_of_a_batch_with_bad_lines(
     finally:
         forger.stop()
     check_burst(d, burst(d, sessions, "after"), "after")  # nobody else paid for it
+
+
+# --- the hand-off: what waited crosses the thread at once ------------------------------
+
+
+def test_a_fair_queue_hands_over_what_waited_in_the_order_get_would() -> None:
+    def fill() -> FairQueue[str]:
+        q: FairQueue[str] = FairQueue()
+        for key, n in (("a", 4), ("b", 1), ("c", 3)):
+            for i in range(n):
+                q.offer(f"{key}{i}", key)
+        q.put("urgent")
+        return q
+
+    one_by_one = fill()
+    expected = [one_by_one.get(0) for _ in range(9)]
+    q = fill()
+    assert q.take(5) + q.take(100) == expected
+    assert q.take(10) == [] and len(q) == 0
+
+
+_LEVEL = st.sampled_from(["a", "b", "", "$SYS", "+", "#"])
+
+
+@given(st.lists(_LEVEL, min_size=1, max_size=4), st.lists(_LEVEL, min_size=1, max_size=4))
+def test_topic_filters_match_as_paho_matches_them(
+    topic_filter: list[str], topic: list[str]
+) -> None:
+    assume("#" not in topic_filter[:-1])
+    assume(not any(level in ("+", "#") for level in topic))
+    assume(not any(level.startswith("$") for level in topic[1:]))
+    expected = paho_matches("/".join(topic_filter), "/".join(topic))
+    assert matches(tuple(topic_filter), topic) == expected

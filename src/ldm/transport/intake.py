@@ -97,6 +97,26 @@ class FairQueue(Generic[_T]):
                 del self._lanes[key]
             return item
 
+    def take(self, limit: int) -> list[_T]:
+        """Up to `limit` waiting items at once, in the order `get` would give them (one
+        hand-off for everything that waited); empty if none wait. Never blocks."""
+        items: list[_T] = []
+        with self._lock:
+            urgent, ring, lanes = self._urgent, self._ring, self._lanes
+            while len(items) < limit and self._size:
+                self._size -= 1
+                if urgent:
+                    items.append(urgent.popleft())
+                    continue
+                key = ring.popleft()
+                lane = lanes[key]
+                items.append(lane.popleft())
+                if lane:
+                    ring.append(key)
+                else:
+                    del lanes[key]
+        return items
+
     def qsize(self) -> int:
         """Items waiting in all lanes."""
         return self._size

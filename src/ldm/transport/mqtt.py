@@ -101,6 +101,21 @@ class Will:
     retain: bool = True
 
 
+def matches(topic_filter: tuple[str, ...], levels: list[str]) -> bool:
+    """Whether a topic (cut into `levels`) matches a filter (cut into its levels), by
+    MQTT's rules: ``+`` is one level, a final ``#`` any number (none included), and a
+    wildcard at the first level never matches a topic that begins with ``$``."""
+    if levels[0].startswith("$") and topic_filter[0] in ("+", "#"):
+        return False
+    n = len(levels)
+    for i, level in enumerate(topic_filter):
+        if level == "#":
+            return True
+        if i >= n or (level != "+" and level != levels[i]):
+            return False
+    return len(topic_filter) == n
+
+
 def _nodelay(_client: mqtt.Client, _userdata: Any, sock: Any) -> None:
     # Runs on paho's thread for every new socket (plain or TLS) before CONNECT is sent.
     if hasattr(sock, "setsockopt"):
@@ -147,6 +162,9 @@ class Transport:
         self.name = name or client_id
         self._sink = sink
         self._subscriptions: dict[str, int] = {}
+        self._filters: tuple[tuple[str, ...], ...] = ()
+        """Each subscribed filter cut into its levels (replaced whole, never changed in
+        place, so paho's thread reads it without the lock)."""
         self._held: deque[tuple[str, bytes, int, bool]] = deque()
         """QoS 1/2 messages taken while no connection was acknowledged."""
         self._lock = threading.Lock()
@@ -282,8 +300,8 @@ class Transport:
             self.dropped_topics += 1
             log.debug("%s: dropped a message whose topic is not UTF-8", self.name)
             return
-        filters = list(self._subscriptions)  # a snapshot: subscribe() may add one meanwhile
-        if not any(mqtt.topic_matches_sub(f, event.topic) for f in filters):
+        levels = event.topic.split("/")
+        if not any(matches(f, levels) for f in self._filters):
             self.dropped_foreign += 1
             log.debug("%s: dropped a message on a topic it did not subscribe to", self.name)
             return
@@ -299,6 +317,7 @@ class Transport:
         """Subscribe now if connected, and again after every reconnect."""
         with self._lock:
             self._subscriptions[topic_filter] = qos
+            self._filters = tuple(tuple(f.split("/")) for f in self._subscriptions)
             if self.connected:
                 _rc, mid = self._client.subscribe(topic_filter, qos)
                 if mid is not None:

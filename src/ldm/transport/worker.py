@@ -4,7 +4,8 @@ paho's network thread only puts events on the worker's inbox; the worker handles
 one at a time, so component state needs no locks, and runs ``tick`` between events.
 ``stop_worker`` ends the thread before the next item, however long the backlog.
 With ``batch`` above one, the worker takes what is waiting, up to ``batch`` items, and
-hands them to ``handle_many`` at once (a provider's batch handler).
+hands them to ``handle_many`` at once (a provider's batch handler, a core's outbox):
+the inbox gives them in one hand-off (`Inbox.take`), not one at a time.
 
 The inbox is a plain FIFO unless the component brings its own `Inbox`: the core uses an
 `ldm.intake.FairQueue`, which serves its participants round-robin.
@@ -46,6 +47,10 @@ class Inbox(Protocol):
         """Items waiting."""
         ...
 
+    def take(self, limit: int) -> list[object]:
+        """Up to `limit` waiting items at once (none: empty); never blocks."""
+        ...
+
 
 class _Fifo:
     """The default inbox: one FIFO, at most ``limit`` items offered."""
@@ -68,6 +73,16 @@ class _Fifo:
 
     def qsize(self) -> int:
         return self._queue.qsize()
+
+    def take(self, limit: int) -> list[object]:
+        items: list[object] = []
+        get = self._queue.get_nowait
+        while len(items) < limit:
+            try:
+                items.append(get())
+            except queue.Empty:
+                break
+        return items
 
 
 class Worker(Generic[_Item]):
@@ -171,14 +186,10 @@ class Worker(Generic[_Item]):
                 log.exception("%s: error while handling an event", self._thread.name)
 
     def _waiting(self, first: object) -> list[object]:
-        """`first` and what waits behind it, up to ``batch`` items (never the stop)."""
-        items = [first]
-        while len(items) < self._batch:
-            try:
-                item = self._queue.get(timeout=0.0)
-            except queue.Empty:
-                break
+        """`first` and what waits behind it, up to ``batch`` items, taken from the inbox
+        in one hand-off (never the stop: what follows it is dropped)."""
+        items = [first, *self._queue.take(self._batch - 1)]
+        for i, item in enumerate(items):
             if item is _STOP:
-                break
-            items.append(item)
+                return items[:i]
         return items

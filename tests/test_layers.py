@@ -17,7 +17,16 @@ SRC = Path(__file__).resolve().parent.parent / "src"
 
 # The engine and the map are pure: no MQTT, no LDM, no pictures, no command line.
 PURE = ("laas/engine", "laas/map")
-FORBIDDEN_IN_PURE = ("ldm", "paho", "amqtt", "matplotlib", "laas.cli", "laas.service", "laas.run")
+FORBIDDEN_IN_PURE = (
+    "ldm",
+    "paho",
+    "amqtt",
+    "matplotlib",
+    "laas.cli",
+    "laas.service",
+    "laas.worker",
+    "laas.run",
+)
 
 
 def _imports(path: Path) -> set[str]:

@@ -89,29 +89,12 @@ def _scenario(a: argparse.Namespace) -> tuple[Scenario, HdMap]:
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
     from laas.sim.scenario import simulate_with
-    from laas.sim.trace import format_measurement
+    from laas.sim.truth import write_run
 
     scenario, hdmap = _scenario(a)
     trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "trace.jsonl", "w", encoding="utf-8") as f:
-        for fix in trace.fixes:
-            f.write(format_measurement(fix.user, fix.measurement) + "\n")
-    with open(out / "truth.jsonl", "w", encoding="utf-8") as f:
-        for fix in trace.fixes:
-            row = {
-                "user": fix.user,
-                "kind": fix.kind,
-                "timestamp": fix.measurement.timestamp,
-                "easting": fix.true_e,
-                "northing": fix.true_n,
-                "epsg": hdmap.projection.epsg,
-                "segment": fix.segment,
-                "lane": fix.lane,
-            }
-            f.write(json.dumps(row) + "\n")
-    print(f"wrote {len(trace.fixes)} fixes to {out}/trace.jsonl and the truth to {out}/truth.jsonl")
+    fixes, truth = write_run(trace, hdmap.projection.epsg, Path(a.out))
+    print(f"wrote {len(trace.fixes)} fixes to {fixes} and the truth to {truth}")
     return 0
 
 
@@ -182,18 +165,9 @@ def _plots(
     sigma_pos: float,
     sigma_vel: float,
 ) -> list[Path]:
-    from laas.sim.plots import plot_lanes_over_time, plot_traces
-    from laas.sim.scenario import simulate_with
-    from laas.sim.score import answer_trace
+    from laas.sim.plots import scenario_plots
 
-    name = scenario.name
-    trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
-    for mode in ("paper", "default"):
-        config = EngineConfig(mode=mode, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
-        answers = answer_trace(hdmap, trace, config)
-        paths.append(plot_lanes_over_time(trace, answers, out / f"{name}-lanes-{mode}.png"))
+    paths = scenario_plots(scenario, hdmap, out, seed, sigma_pos, sigma_vel)
     for p in paths:
         print(f"wrote {p}")
     return paths
@@ -273,7 +247,7 @@ def _cmd_worker(a: argparse.Namespace) -> int:
     if a.processes > 1:
         if a.region is not None or a.standby:
             raise ConfigError("--processes serves every region itself: drop --region/--standby")
-        from laas.run.workers import serve_processes
+        from laas.worker.processes import serve_processes
 
         return serve_processes(a.argv, a.processes, a.identity)
     configure(
@@ -291,58 +265,24 @@ def _cmd_worker(a: argparse.Namespace) -> int:
 
 
 def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
-    from laas.regions import parse_region, split
-    from laas.service import SERVICE_NAME, WorkerConfig, start_worker
+    from laas.worker.serve import ServeOptions, serve_worker
+    from laas.worker.service import WorkerConfig
 
-    hdmap = HdMap.load(a.map)
-    region = None
-    if a.region is not None:
-        k, count = parse_region(a.region)
-        region = split(hdmap, count, overlap=a.overlap)[k]
-    if a.standby:
-        from ldm.provider.standby import wait_until_vacant
-
-        if a.identity is None:
-            raise ConfigError(
-                "a standby serves under the active worker's identity: give --identity "
-                "with the same key file"
-            )
-        name = SERVICE_NAME if region is None else region.name
-        print(f"laas worker: standby for {name!r}, waiting until it is vacant", flush=True)
-        wait_until_vacant(_broker(a), name)
-    provider, service = start_worker(
-        _broker(a),
-        hdmap,
-        _engine_config(a),
-        WorkerConfig(max_speedup=a.max_speedup),
-        region=region,
-        data_qos=a.data_qos,
-        identity_file=a.identity,
+    options = ServeOptions(
+        cluster=_broker(a),
+        map=Path(a.map),
+        engine=_engine_config(a),
+        limits=WorkerConfig(max_speedup=a.max_speedup),
+        region=a.region,
+        overlap=a.overlap,
+        standby=a.standby,
+        identity=a.identity,
         endorsement=a.endorsement,
+        data_qos=a.data_qos,
+        http_port=a.http,
+        http_host=a.http_host,
     )
-    if metrics is not None:
-        from laas.metrics import watch_worker
-
-        watch_worker(metrics, provider, service)
-    print(
-        f"laas worker: serving {len(hdmap.segments)} road elements of {a.map} "
-        f"on {a.cluster} ({a.mode} mode); identity (participants pin it): "
-        f"{provider.identity.public}",
-        flush=True,
-    )
-    live_map = None
-    try:
-        if a.http is not None:
-            from laas.dashboard import DashboardServer
-
-            live_map = DashboardServer(service, provider, host=a.http_host, port=a.http)
-            print(f"laas worker: live map on {live_map.url}", flush=True)
-        wait_for_signal()
-    finally:
-        if live_map is not None:
-            live_map.stop()
-        provider.stop()
-        print(f"laas worker: stopped; {service.stats.summary()}", flush=True)
+    serve_worker(options, wait=wait_for_signal, metrics=metrics)
     return 0
 
 
@@ -524,7 +464,7 @@ def _cmd_map_show(a: argparse.Namespace) -> int:
 
 
 def _cmd_asyncapi(a: argparse.Namespace) -> int:
-    from laas.asyncapi import laas_document_text, write_document
+    from laas.worker.asyncapi import laas_document_text, write_document
 
     if a.out is None:
         sys.stdout.write(laas_document_text())
@@ -668,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--region",
         default=os.environ.get("LAAS_REGION"),
         metavar="K/N",
-        help="serve strip K of the map cut into N (env LAAS_REGION; laas.regions): "
+        help="serve strip K of the map cut into N (env LAAS_REGION; laas.worker.regions): "
         "participants route their fixes here by position",
     )
     p.add_argument(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from laas.service import SERVICE_NAME
+from laas.worker.service import SERVICE_NAME
 from ldm import Participant, ServiceDescription
 
 __all__ = ["offers", "wait_for_service"]

@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from laas.discovery import wait_for_service
 from laas.errors import LaasError
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
-from laas.service import SERVICE_NAME
+from laas.worker.service import SERVICE_NAME
 from ldm import BrokerSettings, Participant, RequestRejected, RoutedSession, ServiceNotFound
 from ldm.wire.topics import NAME_PATTERN
 

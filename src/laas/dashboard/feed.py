@@ -32,7 +32,7 @@ from typing import Any
 
 from laas.dashboard.views import AreaSnapshot, area_views, observation_view
 from laas.errors import ConfigError
-from laas.service import LaasService, Observation
+from laas.worker.service import LaasService, Observation
 from ldm import Provider
 
 __all__ = ["Client", "Feed", "sse"]

@@ -23,7 +23,7 @@ from typing import Any
 from laas.dashboard.feed import Feed, sse
 from laas.dashboard.views import lanes_geojson
 from laas.errors import ConfigError
-from laas.service import LaasService
+from laas.worker.service import LaasService
 from ldm import Provider
 
 __all__ = ["DashboardServer", "page"]

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from laas.map.hdmap import HdMap
-from laas.service import Observation
+from laas.worker.service import Observation
 
 __all__ = ["AreaSnapshot", "area_views", "lanes_geojson", "observation_view"]
 

@@ -30,7 +30,7 @@ plain MQTT client (`ldm.transport.Transport`) that publishes a ping beside every
 fix; the echo process takes it off its queue on a worker thread (the hand-off every LDM
 component makes) and publishes it back. The LDM overhead is p50(LDM) / p50(bare).
 
-The cost of privacy: the Hamburg scenario (`laas.scenario.hamburg_scenario`) runs
+The cost of privacy: the Hamburg scenario (`laas.sim.scenario.hamburg_scenario`) runs
 through fresh deployments twice, with pseudonyms rotating every `rotation_period`
 seconds of scenario time and with rotation off, and both are scored against the truth.
 """

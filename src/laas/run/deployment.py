@@ -27,8 +27,8 @@ from typing import Any, Literal
 from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
-from laas.regions import Region, split
-from laas.service import LaasService, WorkerConfig, start_worker
+from laas.worker.regions import Region, split
+from laas.worker.service import LaasService, WorkerConfig, start_worker
 from ldm import Core, Provider
 from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
 from ldm.ops.hops import Hops
@@ -76,7 +76,7 @@ class LocalDeployment:
         self.hdmap = hdmap
         self.config = config
         self.limits = limits
-        """The workers' limits on their input (`laas.service.WorkerConfig`)."""
+        """The workers' limits on their input (`laas.worker.WorkerConfig`)."""
         self.metrics_port = metrics_port
         self.metrics_host = metrics_host
         self.metrics: Metrics | None = None
@@ -92,7 +92,7 @@ class LocalDeployment:
         self.brokers: dict[str, RunningBroker] = {}
         self.cores: dict[str, Core] = {}
         self.regions = split(hdmap, regions) if regions > 1 else [None]
-        """The workers' regions (`laas.regions`): one worker each; [None], one for all."""
+        """The workers' regions (`laas.worker.regions`): one worker each; [None], one for all."""
         self.workers: list[tuple[Provider, LaasService]] = []  # in this process
         self.provider: Provider | None = None  # the first worker's, in this process
         self.service: LaasService | None = None
@@ -183,7 +183,7 @@ class LocalDeployment:
     def _serve_metrics(self, port: int) -> None:
         """Both cores and the workers of this process in one registry, served on `port`
         (a worker process serves none: `laas worker --metrics-port` does)."""
-        from laas.metrics import watch_worker
+        from laas.worker.metrics import watch_worker
 
         metrics = Metrics()
         for core in self.cores.values():

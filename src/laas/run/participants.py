@@ -29,8 +29,8 @@ from pydantic import ValidationError
 
 from laas.discovery import wait_for_service
 from laas.models import CorrectedPosition, ErrorReply, read_reply
-from laas.service import SERVICE_NAME
 from laas.sim.scenario import Trace
+from laas.worker.service import SERVICE_NAME
 from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound, Session
 
 __all__ = [

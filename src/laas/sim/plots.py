@@ -23,9 +23,16 @@ from matplotlib.lines import Line2D
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.sim.scenario import EPOCH_MS, Trace
+from laas.sim.scenario import EPOCH_MS, Scenario, Trace
 
-__all__ = ["LANE_COLOURS", "draw_lanes", "plot_lanes_over_time", "plot_traces", "render_map"]
+__all__ = [
+    "LANE_COLOURS",
+    "draw_lanes",
+    "plot_lanes_over_time",
+    "plot_traces",
+    "render_map",
+    "scenario_plots",
+]
 
 LANE_COLOURS = {
     "driving": "#9aa0a6",
@@ -183,3 +190,28 @@ def plot_lanes_over_time(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def scenario_plots(
+    scenario: Scenario,
+    hdmap: HdMap,
+    out: Path,
+    seed: int = 0,
+    sigma_pos: float = 1.0,
+    sigma_vel: float = 0.25,
+) -> list[Path]:
+    """Simulate one run of `scenario` and draw it into folder `out`: the traces, and the
+    lanes over time as each mode (paper, default) answers them; the paths written."""
+    from laas.config import EngineConfig
+    from laas.sim.scenario import simulate_with
+    from laas.sim.score import answer_trace
+
+    name = scenario.name
+    trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [plot_traces(hdmap, trace, out / f"{name}-traces.png")]
+    for mode in ("paper", "default"):
+        config = EngineConfig(mode=mode, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
+        answers = answer_trace(hdmap, trace, config)
+        paths.append(plot_lanes_over_time(trace, answers, out / f"{name}-lanes-{mode}.png"))
+    return paths

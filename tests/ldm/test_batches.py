@@ -5,6 +5,7 @@ Mosquitto), no mocks."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from concurrent.futures import Future
@@ -17,7 +18,9 @@ from paho.mqtt.client import topic_matches_sub as paho_matches
 
 from ldm import KeyPair, Provider, Request, ServiceSpec
 from ldm.config import BrokerSettings
+from ldm.local import corebench
 from ldm.local.brokers import wait_for
+from ldm.local.pytest_plugin import need_mosquitto
 from ldm.security.crypto import aad
 from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Event, Message, Transport, matches
@@ -229,3 +232,13 @@ def test_topic_filters_match_as_paho_matches_them(
     assume(not any(level.startswith("$") for level in topic[1:]))
     expected = paho_matches("/".join(topic_filter), "/".join(topic))
     assert matches(tuple(topic_filter), topic) == expected
+
+
+def test_the_core_bench_answers_every_input_and_counts_the_cpu() -> None:
+    need_mosquitto()
+    report = corebench.run(participants=5, rate=4.0, duration=1.5)
+    answered = re.search(r"answered (\d+)/(\d+)", report)
+    assert answered is not None, report
+    assert int(answered[1]) == int(answered[2]) > 0, report
+    cpu = re.search(r"cores ([\d.]+), brokers ([\d.]+), provider ([\d.]+)", report)
+    assert cpu is not None and all(float(x) > 0 for x in cpu.groups()), report

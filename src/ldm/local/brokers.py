@@ -151,6 +151,11 @@ class MosquittoBroker:
     def url(self) -> str:
         return f"mqtt://{self.host}:{self.port}"
 
+    @property
+    def pid(self) -> int | None:
+        """The mosquitto process's id while it runs."""
+        return None if self._process is None else self._process.pid
+
     def start(self) -> Self:
         """Start mosquitto and wait until it accepts connections."""
         if self._process is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import laas.asyncapi
@@ -28,7 +29,7 @@ from laas.worker import (
     serve_worker,
     service,
 )
-from ldm import BrokerSettings
+from ldm import BrokerSettings, Participant
 
 
 def test_serve_worker_serves_a_region_and_says_what_it_did(
@@ -42,8 +43,19 @@ def test_serve_worker_serves_a_region_and_says_what_it_did(
     said: list[str] = []
     stop = threading.Event()
     with LocalDeployment(hamburg_map, brokers="embedded", regions=2) as d:
+        watcher = Participant.create(d.user_url, **d.trust).start()
+
+        def listed() -> bool:
+            return any(s.name == "laas-1of2" for s in watcher.services(timeout=0.5))
+
+        def until(done: Callable[[], bool]) -> None:
+            deadline = time.monotonic() + 20
+            while not done() and time.monotonic() < deadline:
+                time.sleep(0.05)
+
         first, _ = d.workers.pop(0)
         first.stop()  # laas-1of2 withdraws; serve_worker takes its place
+        until(lambda: not listed())
         key = tmp_path / "worker.key"
         d.identity.save(key)
         options = ServeOptions(
@@ -58,9 +70,8 @@ def test_serve_worker_serves_a_region_and_says_what_it_did(
             target=lambda: result.append(serve_worker(options, wait=stop.wait, say=said.append))
         )
         thread.start()
-        deadline = time.monotonic() + 20
-        while not any("serving" in line for line in said) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        until(listed)  # until the user cluster lists it, fixes in its region find no worker
+        watcher.stop()
         live = run_participants(d.user_url, trace, speedup=20.0, **d.trust)
         stop.set()
         thread.join(10)

@@ -9,7 +9,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
@@ -490,13 +490,8 @@ def _scenario_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sigma-vel", type=float, default=0.25, help="receiver speed noise, m/s")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of every subcommand."""
-    parser = argparse.ArgumentParser(
-        prog="laas", description="Location as a Service: lane-level positioning at the edge."
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_demo_and_bench(sub: Any) -> None:
+    """`laas demo` and `laas bench`."""
     p = sub.add_parser("demo", help="run the paper's scenario end to end and show the results")
     p.add_argument("--out", default="out", help="folder for the pictures (default: out)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated GNSS errors")
@@ -573,6 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_bench)
 
+
+def _add_worker(sub: Any) -> None:
+    """`laas worker`."""
     p = sub.add_parser("worker", help="serve the laas service on an LDM service cluster")
     _connection_args(p, "LAAS")
     p.add_argument(
@@ -642,6 +640,9 @@ def build_parser() -> argparse.ArgumentParser:
     _http_args(p, default=None)
     p.set_defaults(func=_cmd_worker)
 
+
+def _add_simulate(sub: Any) -> None:
+    """`laas simulate`."""
     p = sub.add_parser("simulate", help="run a scenario's road users as live LDM participants")
     _connection_args(p, "LAAS")
     _scenario_args(p)
@@ -675,6 +676,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_simulate)
 
+
+def _add_offline(sub: Any) -> None:
+    """The offline commands: replay, evaluate, bench-filter, map, asyncapi, scenario, plot."""
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
     p.add_argument("--map", required=True, help="GeoJSON lane map")
     p.add_argument("trace", help="trace file, JSON Lines with a `user` field; - for stdin")
@@ -749,6 +753,19 @@ def build_parser() -> argparse.ArgumentParser:
     _scenario_args(p)
     p.add_argument("--out", required=True, help="folder for the PNG files")
     p.set_defaults(func=_cmd_plot)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="laas", description="Location as a Service: lane-level positioning at the edge."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    _add_demo_and_bench(sub)
+    _add_worker(sub)
+    _add_simulate(sub)
+    _add_offline(sub)
 
     from laas.bridges.commands import add_bridge_commands  # owntracks, gpsd, cam
 

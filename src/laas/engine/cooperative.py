@@ -187,7 +187,11 @@ class CooperativeLaneFilter(LaneFilter):
         var_m = float(n_now @ (track.position_cov + cov) @ n_now)
         w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
         fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
-        cross = math.sqrt(1.0 / (w_lane + w_m))
+        # Across the road the answer is wrong by a lane whenever its lane is: its 1-sigma
+        # is that of the mixture over lanes about the answered point,
+        # s_x^2 = 1 / (w_lane + w_m) + sum_l P(l) (o_l - o_l*)^2.
+        spread = float(marginal @ (segment.lane_offsets(s_now) - o) ** 2)
+        cross = math.sqrt(1.0 / (w_lane + w_m) + spread)
         point = np.array(segment.point(s_now, fused))
         return Placement(lane, float(marginal[lane]), point, cov, cross)
 

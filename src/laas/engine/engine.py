@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from laas.config import EngineConfig
+from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
 from laas.engine.lanefilter import Placement, make_lane_filter
 from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
@@ -232,13 +233,16 @@ class Engine:
         cov = track.position_cov + placed.common_cov
         along = math.sqrt(float(tangent @ cov @ tangent) + lasting)
         lane = placed.lane
+        probability = placed.probability
+        if self.config.mode == "default" and self.config.calibrated:
+            probability = calibrate(probability)
         return _Answer(
             measurement.timestamp,
             point,
             segment.id,
             lane,
             segment.lanes[lane].type,
-            placed.probability,
+            probability,
             placed.cross,
             along,
         )

@@ -1,11 +1,11 @@
 """Fit the lane probability's calibration map on the development suite.
 
-    .venv/bin/python scripts/fit_calibration.py [--seeds 40] [--workers 2]
+    .venv/bin/python scripts/fit_calibration.py [--seeds 12] [--workers 2]
 
 Runs default mode, uncalibrated (`EngineConfig(calibrated=False)`), on the dev suite's
 first `--seeds` seeds of every family at both of its sigma_pos (the held-out suite is never
 run here), pairs every answer's P(l*) with whether its lane holds the true position
-(`laas.sim.integrity.lane_holds`), fits the isotonic regression of the one on the other
+(`laas.sim.integrity.lane_right`), fits the isotonic regression of the one on the other
 (`scipy.optimize.isotonic_regression`, pool adjacent violators) and prints the knots for
 `laas.engine.calibration.KNOTS`, with the reliability before and after.
 """
@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import isotonic_regression
 
 from laas.engine import Engine
-from laas.sim.integrity import IntegrityTally, lane_holds
+from laas.sim.integrity import IntegrityTally, lane_right
 from laas.sim.suite import engine_config, get_suite, simulate_case
 
 _STEP = 0.005  # a knot is kept where g has moved this much since the last one
@@ -38,10 +38,12 @@ def _pairs(job: tuple[str, int, float]) -> list[tuple[float, bool]]:
         answer = engine.process(fix.user, fix.measurement)
         if answer is None:
             continue
-        right = (
-            answer.segment is not None
-            and answer.lane is not None
-            and lane_holds(case.hdmap, answer.segment, answer.lane, fix.true_e, fix.true_n)
+        right = lane_right(
+            case.hdmap,
+            (answer.segment, answer.lane),
+            (fix.segment, fix.lane),
+            fix.true_e,
+            fix.true_n,
         )
         out.append((answer.probability, right))
     return out
@@ -59,7 +61,7 @@ def _knots(x: np.ndarray, y: np.ndarray) -> list[tuple[float, float]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=40)
+    parser.add_argument("--seeds", type=int, default=12)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     a = parser.parse_args()
     suite = get_suite("dev")

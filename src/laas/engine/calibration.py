@@ -14,9 +14,9 @@ over every answer of `laas evaluate --suite dev` (both sigma_pos), by the pool-a
 violators algorithm (`scipy.optimize.isotonic_regression`), thinned to knots that move g
 by at most 0.005 (`scripts/fit_calibration.py --seeds 12`, which prints this table:
 dev seeds 0-11 of every family at both sigma_pos, 113,512 answers; ECE 0.025 -> 0.006
-there, the share said >= 0.9 and wrong 1.00 % -> 1.32 %). Being monotone, g never changes which lane is answered, only what
-is said of it. The held-out suite is never used to fit it; `laas evaluate --suite
-heldout` shows how it holds there.
+there, the share said >= 0.9 and wrong 1.00 % -> 1.32 %). Being monotone, g never
+changes which lane is answered, only what is said of it. The held-out suite is never used
+to fit it; `laas evaluate --suite heldout` shows how it holds there.
 """
 
 from __future__ import annotations

@@ -121,6 +121,14 @@ class EngineConfig(Settings):
             "their evidence about lanes counts once per this many seconds, not once per fix"
         ),
     )
+    calibrated: bool = Field(
+        default=True,
+        description=(
+            "default mode: report the lane probability through the calibration map fitted "
+            "on the development suite (laas.engine.calibration), so that it is the rate at "
+            "which such answers are right"
+        ),
+    )
     max_lane_change: Probability = Field(
         default=0.45, description="largest probability of leaving a lane to one side in one step"
     )
@@ -143,7 +151,13 @@ class EngineConfig(Settings):
         default=10.0, description="1-sigma of the common error before any evidence, m"
     )
     bias_drift: NonNegative = Field(
-        default=0.05, description="random-walk drift of the common error, m/sqrt(s)"
+        default=0.1,
+        description=(
+            "random-walk drift of the common error, m/sqrt(s): the mean of the development "
+            "families' U(0, 0.2); a drift assumed too slow lets old evidence pin the "
+            "estimate after the error has moved (a lock-in), and triangulates it wrongly "
+            "along a gently curving road"
+        ),
     )
     bias_area: Positive = Field(
         default=2_000.0, description="size of the area that shares one common error, m"

@@ -24,9 +24,13 @@ does, exactly:
                  per tau = motion_memory seconds, since motion is a lasting trait of a
                  user. T: lane changes at a base rate, announced by lateral motion
                  beyond its own noise, and never into a lane that does not fit)
-    evidence     c(u)    = sum_l a(u, l) (eps + N(d_i - u - o_l; 0, s^2))
+    evidence     c(u)    = sum_l a(u, l) (eps + N~(d_i - u - o_l))
     common error log p(b) += log c(n . b)
-    lanes        alpha_i(u, l) = a(u, l) (eps + N(d_i - u - o_l; 0, s^2)) / c(u)
+    lanes        alpha_i(u, l) = a(u, l) (eps + N~(d_i - u - o_l)) / c(u)
+
+    N~(r) = (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 + s_mp^2): a receiver in multipath
+    (a share pi of the time) is s_mp metres off, so one user's few fixes far from a lane
+    centre make that lane less likely, not impossible
 
 With `max_user_evidence` K set (off by default), the common error is not the plain sum of
 every user's log c: user i's evidence so far, T_i(b) = sum_k log c_k(n_k . b), enters the
@@ -71,7 +75,14 @@ __all__ = ["CooperativeLaneFilter"]
 
 _OFF_LANE = 1e-3  # eps, per metre: a fix that fits no lane (an outlier, a car park)
 _TURN = math.radians(2.0)  # rebuild a user's table when its road has turned this much
-_CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new element
+_CARRY_MIX = 0.05
+# A receiver spends a share of its time in multipath, its fix then metres off: in the
+# development families 3-10 % of the time (a jump rate of up to 1/60-1/20 per s, each
+# lasting 2-6 s), jumps of 2-6 m; in cities it is the most common receiver fault.
+_MULTIPATH_SHARE = 0.05
+_MULTIPATH_SIGMA = (
+    3.0  # m, across the road  # share of a uniform lane belief mixed in when entering a new element
+)
 
 
 @dataclass
@@ -158,7 +169,7 @@ class CooperativeLaneFilter(LaneFilter):
             c.sigma_lane**2 + c.sigma_receiver**2 + k * float(normal @ track.position_cov @ normal)
         )
         r = (d_f - area.u.values[lo:hi])[:, None] - offsets[None, :]
-        like = _OFF_LANE + np.exp(-0.5 * (r / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
+        like = _OFF_LANE + _lateral_likelihood(r, s)
         # A receiver's errors persist from fix to fix at any rate: however often it
         # reports, its evidence counts at most once per evidence_interval seconds,
         # like^w with w = min(1, dt / evidence_interval).
@@ -187,8 +198,17 @@ class CooperativeLaneFilter(LaneFilter):
         var_m = float(n_now @ (track.position_cov + cov) @ n_now)
         w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
         fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
-        cross = math.sqrt(1.0 / (w_lane + w_m))
-        point = np.array(segment.point(s_now, fused))
+        # Across the road the position is the posterior mean over lanes: on lane l the
+        # user lies at its centre fused with the measurement as on l*, fused_l = fused +
+        # o_l - o_l*, so  d = fused + sum_l P(l) (o_l - o_l*).  Sure of its lane, that is
+        # the lane's own point; unsure, it stays between the lanes it cannot tell apart
+        # rather than snap onto the wrong one. Its 1-sigma is the mixture's about it,
+        # s_x^2 = 1 / (w_lane + w_m) + sum_l P(l) (o_l - o_bar)^2.
+        shift = segment.lane_offsets(s_now) - o
+        mean_shift = float(marginal @ shift)
+        spread = float(marginal @ (shift - mean_shift) ** 2)
+        cross = math.sqrt(1.0 / (w_lane + w_m) + spread)
+        point = np.array(segment.point(s_now, fused + mean_shift))
         return Placement(lane, float(marginal[lane]), point, cov, cross)
 
     def _table(
@@ -246,3 +266,13 @@ def _reproject(
     held = den > 1e-12
     out[held] = num[held] / den[held, None]
     return out
+
+
+def _lateral_likelihood(r: np.ndarray, s: float) -> np.ndarray:
+    """p(r) of a lateral residual r: N(0, s^2), or with probability pi (multipath)
+    N(0, s^2 + s_mp^2):  (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 + s_mp^2)."""
+    wide = math.sqrt(s * s + _MULTIPATH_SIGMA**2)
+    k = 1.0 / math.sqrt(2.0 * math.pi)
+    return (1.0 - _MULTIPATH_SHARE) * k / s * np.exp(-0.5 * (r / s) ** 2) + (
+        _MULTIPATH_SHARE * k / wide * np.exp(-0.5 * (r / wide) ** 2)
+    )

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from laas.config import EngineConfig
+from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
 from laas.engine.lanefilter import Placement, make_lane_filter
 from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
@@ -222,19 +223,26 @@ class Engine:
         self, measurement: GpsMeasurement, segment: Segment, placed: Placement, track: Track
     ) -> _Answer:
         """The placed position with its 1-sigma across (from the lane filter) and along
-        the road: along = sqrt(t' (P_track + P_b) t)."""
+        the road: along = sqrt(t' (P_track + P_b) t + s_rx^2)."""
         point = placed.point
         s, _ = segment.frame(float(point[0]), float(point[1]))
         tangent = segment.tangent(s)
-        along = math.sqrt(float(tangent @ (track.position_cov + placed.common_cov) @ tangent))
+        # default mode: the receiver's own lasting error s_rx, which the track does not
+        # see, lies along the road as much as across it
+        lasting = self.config.sigma_receiver**2 if self.config.mode == "default" else 0.0
+        cov = track.position_cov + placed.common_cov
+        along = math.sqrt(float(tangent @ cov @ tangent) + lasting)
         lane = placed.lane
+        probability = placed.probability
+        if self.config.mode == "default" and self.config.calibrated:
+            probability = calibrate(probability)
         return _Answer(
             measurement.timestamp,
             point,
             segment.id,
             lane,
             segment.lanes[lane].type,
-            placed.probability,
+            probability,
             placed.cross,
             along,
         )

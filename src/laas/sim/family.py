@@ -86,6 +86,15 @@ GNSS errors:
               radius sqrt(2) sigma): logU(0.5, 2) times their own true radius (a steady
               misjudgement), times a log-normal jitter of 0.25 per fix, rounded to 0.1 m
 
+The edge family draws as the others, with its own ranges: a lead straight U(300, 700) m,
+  1-2 features with weights (4, 2, 0.5, 0, 0.5), elements every U(25, 60) m (a long road
+  cut into many short elements, as importers cut real roads); two-way with p 0.3, 1-2
+  driving lanes per direction or 2-3 one way; a bicycle lane on each kerb side always, no
+  parking lane, a sidewalk with p 0.5; 3 or 4 users (logU(3, 4) rounded), cars and
+  cyclists with weights (0.35, 0.65, 0), cars U(5, 14) m/s; stops p 0.2; multipath
+  U(0, 1/30) per s. Its cases are the ones a common error can lock in: a small group
+  whose every member could sit one lane over.
+
 Map families: the same road users and errors on a real map (`MAP_FAMILIES`, imported
 with `laas map import` and shipped in ``maps/``). ``build_case(name, seed)`` of a map
 family draws, from one generator seeded by (crc32(name), seed):
@@ -225,6 +234,30 @@ FAMILIES: dict[str, FamilySpec] = {
         kinds=(0.25, 0.4, 0.35),
         car_speed=(5.0, 10.0),
         stop=0.3,
+        multipath_rate=(0.0, 1.0 / 30.0),
+    ),
+    "edge": FamilySpec(
+        name="edge",
+        description=(
+            "a bicycle lane at the kerb with small groups of cyclists and cars on it; long "
+            "straights cut into short elements"
+        ),
+        lead_straight=(300.0, 700.0),
+        features=(1, 2),
+        feature_weights=(4.0, 2.0, 0.5, 0.0, 0.5),
+        element_length=(25.0, 60.0),
+        two_way=0.3,
+        driving_two_way=(1, 2),
+        driving_one_way=(2, 3),
+        single_lane=0.0,
+        sidewalk=0.5,
+        bicycle=1.0,
+        parking=0.0,
+        max_lanes=8,
+        users=(3, 4),
+        kinds=(0.35, 0.65, 0.0),
+        car_speed=(5.0, 14.0),
+        stop=0.2,
         multipath_rate=(0.0, 1.0 / 30.0),
     ),
 }

@@ -13,26 +13,33 @@ like its position. Per run, counts that add up over runs (so a suite pools its a
   ``accuracy_along``). For an honest Gaussian 1-sigma these are 68 % and 95 %.
 
 A lane is right by geometry (`lane_holds`): the true position lies inside the answered
-lane, its centre line +- half its width, at that place. So the same physical lane counts
-wherever a map cuts its road into elements.
+lane, its centre line +- half its width, at that place; or the answered lane, continued
+across the seams of its road's elements, is the truth's lane (`same_lane`). So the same
+physical lane counts wherever a map cuts its road into elements, and an answer on the
+right lane of the next element (its position off along the road, where the common error
+cannot be seen) is scored for its lane by this and for its position by the AED.
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from laas.map.hdmap import HdMap
+from laas.map.hdmap import HdMap, Segment
 
 __all__ = [
     "BINS",
+    "CHAIN_REACH",
     "END_TOLERANCE",
     "Integrity",
     "IntegrityTally",
     "lane_holds",
+    "lane_right",
+    "same_lane",
 ]
 
 BINS = 10
@@ -41,6 +48,12 @@ BINS = 10
 END_TOLERANCE = 1.0
 """m: a true position this far past either end of the answered element still counts as in
 it (elements meet end to end; the true position of a user on the seam may lie on either)."""
+
+
+CHAIN_REACH = 30.0
+"""m of road between the answered element and the truth's (the elements wholly between
+them) within which a lane continued across seams still counts as the same lane: twice
+the largest common error along the road of the scenario families (15 m)."""
 
 
 def lane_holds(hdmap: HdMap, segment: str, lane: int, x: float, y: float) -> bool:
@@ -54,6 +67,74 @@ def lane_holds(hdmap: HdMap, segment: str, lane: int, x: float, y: float) -> boo
         return False
     centre = float(seg.lane_offsets(s)[lane])
     return abs(d - centre) <= seg.lanes[lane].width / 2.0
+
+
+def same_lane(hdmap: HdMap, answered: tuple[str, int], truth: tuple[str, int]) -> bool:
+    """True if lane `answered` (segment, lane), followed across the seams of its road
+    (successors and predecessors, each lane into the lane of the next element that holds
+    its end point), reaches lane `truth` within `CHAIN_REACH` m of road between them."""
+    if answered == truth:
+        return True
+    seen = {answered}
+    frontier = [(answered, 0.0)]
+    while frontier:
+        (seg_id, lane), far = frontier.pop()
+        seg = hdmap.segments[seg_id]
+        crossed = 0.0 if (seg_id, lane) == answered else seg.length
+        if far + crossed > CHAIN_REACH:
+            continue
+        for nxt, at_end in _neighbours(hdmap, seg_id):
+            other = _continued(hdmap, seg, lane, hdmap.segments[nxt], at_end)
+            if other is None or (nxt, other) in seen:
+                continue
+            if (nxt, other) == truth:
+                return True
+            seen.add((nxt, other))
+            frontier.append(((nxt, other), far + crossed))
+    return False
+
+
+def lane_right(
+    hdmap: HdMap,
+    answered: tuple[str | None, int | None],
+    truth: tuple[str, int],
+    x: float,
+    y: float,
+) -> bool:
+    """Whether an answered (segment, lane) is right for a truth at (x, y) on lane `truth`:
+    it holds the true position (`lane_holds`) or continues into the truth's lane
+    (`same_lane`)."""
+    segment, lane = answered
+    if segment is None or lane is None or segment not in hdmap.segments:
+        return False
+    return lane_holds(hdmap, segment, lane, x, y) or same_lane(hdmap, (segment, lane), truth)
+
+
+_PREDECESSORS: weakref.WeakKeyDictionary[HdMap, dict[str, list[str]]] = weakref.WeakKeyDictionary()
+
+
+def _neighbours(hdmap: HdMap, segment: str) -> list[tuple[str, bool]]:
+    """The elements that join `segment`: (id, True) after its end, (id, False) before its
+    start."""
+    before = _PREDECESSORS.get(hdmap)
+    if before is None:
+        before = {}
+        for seg in hdmap.segments.values():
+            for nxt in seg.successors:
+                before.setdefault(nxt, []).append(seg.id)
+        _PREDECESSORS[hdmap] = before
+    after = [(s, True) for s in hdmap.segments[segment].successors if s in hdmap.segments]
+    return after + [(s, False) for s in before.get(segment, ())]
+
+
+def _continued(hdmap: HdMap, seg: Segment, lane: int, nxt: Segment, at_end: bool) -> int | None:
+    """The lane of `nxt` that holds the end (or start) point of `lane` of `seg`, if any."""
+    s = seg.length if at_end else 0.0
+    x, y = seg.point(s, float(seg.lane_offsets(s)[lane]))
+    t, d = nxt.frame(x, y)
+    offsets = nxt.lane_offsets(t)
+    k = int(np.argmin(np.abs(offsets - d)))
+    return k if abs(d - float(offsets[k])) <= nxt.lanes[k].width / 2.0 else None
 
 
 @dataclass

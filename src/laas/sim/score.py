@@ -2,9 +2,10 @@
 
     RMSE_x = sqrt(mean (e_hat - e)^2),   RMSE_y = sqrt(mean (n_hat - n)^2),
     AED    = mean sqrt((e_hat - e)^2 + (n_hat - n)^2),
-    Acc.   = share of fixes whose answered lane holds the true position (by geometry:
-             `laas.sim.integrity.lane_holds`; the same physical lane wherever a map cuts
-             its road into elements); Acc. by id, beside it for one release, the share
+    Acc.   = share of fixes whose answered lane is the true one by geometry: it holds
+             the true position, or it is the truth's lane continued across element seams
+             (`laas.sim.integrity`; the same physical lane wherever a map cuts its road
+             into elements); Acc. by id, beside it for one release, the share
              whose (segment, lane) is the true one.
 
 Each answer's stated confidence is scored too (`laas.sim.integrity`): its lane probability
@@ -29,7 +30,7 @@ from laas.config import EngineConfig
 from laas.engine import Engine
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.sim.integrity import IntegrityTally, lane_holds
+from laas.sim.integrity import IntegrityTally, lane_right
 from laas.sim.scenario import Trace
 
 __all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "run_trace", "score"]
@@ -111,10 +112,8 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
         e, nn = proj.to_utm(answer.longitude, answer.latitude)
         err[i] = (e - fix.true_e, nn - fix.true_n)
         ok_id[i] = answer.segment == fix.segment and answer.lane == fix.lane
-        ok[i] = ok_id[i] or (
-            answer.segment is not None
-            and answer.lane is not None
-            and lane_holds(hdmap, answer.segment, answer.lane, fix.true_e, fix.true_n)
+        ok[i] = ok_id[i] or lane_right(
+            hdmap, (answer.segment, answer.lane), (fix.segment, fix.lane), fix.true_e, fix.true_n
         )
         prob[i] = answer.probability
         sigma[i] = (answer.accuracy_cross, answer.accuracy_along)

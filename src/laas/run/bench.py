@@ -192,7 +192,7 @@ class BenchReport:
     cpu: dict[str, float] = field(default_factory=dict)
     """CPU s of each kind of process over the load (from /proc), brokers included:
     ``participants``, ``cores`` (this process: the two cores, and the bench's own
-    loop), ``worker``, ``brokers`` (all three), ``echo``; empty without /proc."""
+    loop), ``worker``, ``brokers`` (all three); empty without /proc."""
     privacy: list[PrivacyRun] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
 
@@ -463,15 +463,14 @@ def _children(pid: int) -> list[int]:
 
 
 def _processes(echo: int | None) -> dict[int, str]:
-    """The processes of the bench on this machine that outlive the load, by pid ->
-    kind: this one (``cores``), the echo, the brokers (Mosquitto, or the embedded
-    broker in a process) and the worker processes (any other child). The participant
-    processes, which exit once done, count their own CPU time."""
+    """The processes of the system under test that outlive the load, by pid -> kind:
+    this one (``cores``), the brokers (Mosquitto, or the embedded broker in a process)
+    and the worker processes (any other child but the bare echo, which is the floor's,
+    not the LDM's). The participant processes, which exit once done, count their own
+    CPU time."""
     kinds = {os.getpid(): "cores"}
-    if echo is not None:
-        kinds[echo] = "echo"
     for pid in _children(os.getpid()):
-        if pid in kinds:
+        if pid in kinds or pid == echo:
             continue
         try:
             command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
@@ -486,7 +485,7 @@ def _processes(echo: int | None) -> dict[int, str]:
 
 def _cpu_by_kind(kinds: dict[int, str]) -> dict[str, float]:
     """CPU seconds so far, summed by kind of process."""
-    total = dict.fromkeys(("cores", "worker", "brokers", "echo"), 0.0)
+    total = dict.fromkeys(("cores", "worker", "brokers"), 0.0)
     for pid, kind in kinds.items():
         total[kind] += _cpu_seconds(pid)
     return total

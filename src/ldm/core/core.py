@@ -184,7 +184,6 @@ class Core(Worker[Event]):
         self._keys: dict[tuple[str, str], SessionKeys] = {}
         """(client, service) -> what intake needs to know of the session, to charge its
         input to the right bucket; the worker writes it."""
-        self._charge: Charge = "other"  # worker: the budget that paid for this message
         self._recent: OrderedDict[tuple[str, str, str], float] = OrderedDict()
         """(client, service, c) of input charged to its session in the last ``max_age``,
         oldest first: a replay of one is not the session's (intake, under ``_guard``)."""
@@ -607,29 +606,35 @@ class Core(Worker[Event]):
         is_data = topic.kind == "participant_input"
         service = topic.service
         admitted = msg if isinstance(msg, Admitted) else None
-        self._charge = (
+        charge: Charge = (
             admitted.charge if admitted is not None else "session" if is_session else "other"
         )
-        try:
-            if admitted is not None and admitted.refused:
-                cfg = self.config
-                error = (
-                    f"more than {cfg.rate:g} messages per second (burst {cfg.burst:g}); slow down"
-                )
-                self._reject(client, service, "rate_limited", error, payload=msg.payload, paid=True)
-            else:
-                self._participant_message(msg, client, service, is_session, is_data)
-        finally:
-            self._charge = "other"
+        if admitted is not None and admitted.refused:
+            cfg = self.config
+            error = f"more than {cfg.rate:g} messages per second (burst {cfg.burst:g}); slow down"
+            self._reject(
+                charge, client, service, "rate_limited", error, payload=msg.payload, paid=True
+            )
+        else:
+            self._participant_message(msg, charge, client, service, is_session, is_data)
 
     def _participant_message(
-        self, msg: Message, client: str, service: str, is_session: bool, is_data: bool
+        self,
+        msg: Message,
+        charge: Charge,
+        client: str,
+        service: str,
+        is_session: bool,
+        is_data: bool,
     ) -> None:
+        """A participant's message that intake admitted; `charge`: the budget that paid
+        for it, whose notice bucket pays for any refusal."""
         cfg = self.config
         now = time.time()
         if len(msg.payload) > cfg.max_payload:
             self.stats.rejected_size += 1
             self._reject(
+                charge,
                 client,
                 service,
                 "too_large",
@@ -639,6 +644,7 @@ class Core(Worker[Event]):
         if not (is_session or is_data):
             self.stats.dropped_invalid += 1
             self._reject(
+                charge,
                 client,
                 service,
                 "invalid",
@@ -648,19 +654,19 @@ class Core(Worker[Event]):
         try:
             if is_session:
                 request = SessionRequest.model_validate_json(msg.payload)
-                self._session_request(client, request)
+                self._session_request(charge, client, request)
                 self._share_keys(client, request.service)  # a grant may bring a new secret
             else:
                 known = msg.envelope if isinstance(msg, Admitted) else None
                 env = Envelope.model_validate_json(msg.payload) if known is None else known
                 secret = msg.secret if known is not None and isinstance(msg, Admitted) else None
-                if self._participant_input(client, service, env, now, secret):
+                if self._participant_input(charge, client, service, env, now, secret):
                     self._share_keys(client, service)
         except ValidationError as exc:
             self.stats.dropped_invalid += 1
             what = "session request" if is_session else "input envelope"
             error = f"{what}: {describe(exc)}"
-            self._reject(client, service, "invalid", error, payload=msg.payload)
+            self._reject(charge, client, service, "invalid", error, payload=msg.payload)
 
     def _share_keys(self, client: str, service: str) -> None:
         """Tell intake the session's keys (current, and old ones until their grace ends)
@@ -680,6 +686,7 @@ class Core(Worker[Event]):
 
     def _reject(
         self,
+        charge: Charge,
         client: str,
         service: str,
         reason: Rejection,
@@ -689,34 +696,36 @@ class Core(Worker[Event]):
         payload: bytes = b"",
         paid: bool = False,
     ) -> None:
-        """Answer a refused message on the client's session topic, within its notice bucket
-        (``paid``: intake took the token already).
+        """Answer a refused message on the client's session topic, within the notice
+        bucket of the budget that paid for it (`charge`; ``paid``: intake took the token
+        already).
 
         The correlation id is ``c``, or read from ``payload`` only once the notice is
         admitted and only if the payload is within ``max_payload``, so a flood costs no
         parsing.
         """
-        if not paid and not self._admit_notice(client):
+        if not paid and not self._admit_notice(charge, client):
             return
         if c is None and len(payload) <= self.config.max_payload:
             c = correlation(payload)
         notice = SessionNotice(kind="rejected", service=service, c=c, reason=reason, error=error)
         self._notify(client, notice)
 
-    def _answer(self, client: str, notice: SessionNotice) -> None:
-        """Send a ``refused`` or ``nosession`` notice within the client's notice bucket."""
-        if self._admit_notice(client):
+    def _answer(self, charge: Charge, client: str, notice: SessionNotice) -> None:
+        """Send a ``refused`` or ``nosession`` notice within the notice bucket of the
+        budget that paid for the message it answers (`charge`)."""
+        if self._admit_notice(charge, client):
             self._notify(client, notice)
 
-    def _admit_notice(self, client: str) -> bool:
-        """Take a token from the notice bucket (10/s) of the budget that paid for the
-        message being handled (`Limits`): False when it is empty. A client intake never
-        saw (no buckets) is answered."""
+    def _admit_notice(self, charge: Charge, client: str) -> bool:
+        """Take a token from the notice bucket (10/s) of the client's budget `charge`
+        (`Limits`): False when it is empty. A client intake never saw (no buckets) is
+        answered."""
         with self._guard:
             limits = self._limits.get(client)
             if limits is None:
                 return True
-            return self._take_notice(limits.budget(self._charge), time.time())
+            return self._take_notice(limits.budget(charge), time.time())
 
     # --- services ---------------------------------------------------------------------
 
@@ -872,13 +881,15 @@ class Core(Worker[Event]):
         payload = notice.model_dump_json(exclude_none=True).encode()
         self.cluster.publish(topics.session_notice(client), payload, qos=1)
 
-    def _session_request(self, client: str, req: SessionRequest) -> None:
+    def _session_request(self, charge: Charge, client: str, req: SessionRequest) -> None:
         svc = self._services.get(req.service)
         if svc is None:
             self.stats.answered_refused += 1
             error = f"no service {req.service!r} in this cluster; list the services first"
             self._answer(
-                client, SessionNotice(kind="refused", service=req.service, c=req.c, error=error)
+                charge,
+                client,
+                SessionNotice(kind="refused", service=req.service, c=req.c, error=error),
             )
             return
         now = time.time()
@@ -922,7 +933,13 @@ class Core(Worker[Event]):
         return False
 
     def _participant_input(
-        self, client: str, service: str, env: Envelope, now: float, checked: bytes | None = None
+        self,
+        charge: Charge,
+        client: str,
+        service: str,
+        env: Envelope,
+        now: float,
+        checked: bytes | None = None,
     ) -> bool:
         """Input of a participant's session, forwarded under its pseudonym. `checked`:
         the secret intake checked the tag with (it is not checked again while the
@@ -934,14 +951,14 @@ class Core(Worker[Event]):
                 f"t: {env.t - now:.0f} s ahead of the core's clock (limit "
                 f"{self.config.max_clock_skew:g} s); synchronise the clock"
             )
-            self._reject(client, service, "clock", error, c=env.c)
+            self._reject(charge, client, service, "clock", error, c=env.c)
             return False
         if self._stale(env):
             return False
         session = self._sessions.get((client, service))
         if session is None or env.k is None:
             self.stats.answered_nosession += 1
-            self._answer(client, SessionNotice(kind="nosession", service=service, c=env.c))
+            self._answer(charge, client, SessionNotice(kind="nosession", service=service, c=env.c))
             return True
         if (
             session.secret is not None
@@ -960,7 +977,7 @@ class Core(Worker[Event]):
             self.stats.answered_refused += 1
             error = f"service {service!r} is gone"
             self._answer(
-                client, SessionNotice(kind="refused", service=service, c=env.c, error=error)
+                charge, client, SessionNotice(kind="refused", service=service, c=env.c, error=error)
             )
             return False
         now = time.time()
@@ -973,7 +990,7 @@ class Core(Worker[Event]):
                 f"k: a new ephemeral key at most every {self.config.rekey_interval:g} s "
                 "per session; keep the current key until the core asks to rotate"
             )
-            self._reject(client, service, "rate_limited", error, c=env.c)
+            self._reject(charge, client, service, "rate_limited", error, c=env.c)
             return False
         payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
         if self.hops is not None:

@@ -69,7 +69,10 @@ class CorrectedPosition(BaseModel):
     `segment`, `lane` and `lane_type` are None when the user is off the map; the
     position is then the filtered (and, where known, bias-corrected) fix.
     `accuracy_cross` and `accuracy_along` are 1-sigma error estimates in metres
-    across and along the road; `accuracy` is the horizontal 1-sigma radius.
+    across and along the road; `accuracy` is the horizontal 1-sigma radius. Across the
+    road the position is the mean over the lanes the user may be on, and
+    `accuracy_cross` counts the chance of each: an answer unsure of its lane says so in
+    both `probability` and `accuracy_cross`.
     """
 
     model_config = _STRICT
@@ -81,10 +84,15 @@ class CorrectedPosition(BaseModel):
     lane: Annotated[int, Field(ge=0)] | None = Field(description="lane index, 0 = leftmost")
     lane_type: LaneType | None
     probability: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
-        description="posterior probability of the chosen lane"
+        description=(
+            "probability that the chosen lane is right (the lane posterior, calibrated on "
+            "the development suite)"
+        )
     )
     accuracy: Annotated[float, Field(ge=0.0)] = Field(description="horizontal 1-sigma, m")
-    accuracy_cross: Annotated[float, Field(ge=0.0)] = Field(description="cross-road 1-sigma, m")
+    accuracy_cross: Annotated[float, Field(ge=0.0)] = Field(
+        description="cross-road 1-sigma, m, the chance of every other lane included"
+    )
     accuracy_along: Annotated[float, Field(ge=0.0)] = Field(description="along-road 1-sigma, m")
 
 

@@ -365,6 +365,8 @@ def _nats_cluster(args: argparse.Namespace) -> int:
     try:
         print(f"ldm nats-cluster: {args.nodes} nodes, MQTT at {cluster.url}", flush=True)
         print(f"ldm nats-cluster: logs and stores in {cluster.directory}", flush=True)
+        for line in cluster.describe():
+            print(f"ldm nats-cluster: {line}", flush=True)
         for account, password in cluster.passwords.items():
             print(f"{account}={password}", flush=True)
         wait_for_signal()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+import urllib.request
 from collections.abc import Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -375,3 +376,19 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
         assert worst < 20.0
     finally:
         d.close()
+
+
+def test_the_cluster_tells_an_operator_each_nodes_process_and_monitoring_port(
+    cluster: NatsCluster,
+) -> None:
+    """What `ldm nats-cluster` prints per node: its process id and a monitoring URL that
+    answers."""
+    lines = cluster.describe()
+    assert len(lines) == len(cluster.nodes)
+    for node, line in zip(cluster.nodes, lines, strict=True):
+        assert node.process is not None
+        assert f"pid {node.process.pid}," in line
+        url = f"http://127.0.0.1:{node.monitor_port}/healthz"
+        assert url in line
+        with urllib.request.urlopen(url, timeout=10) as reply:
+            assert reply.status == 200

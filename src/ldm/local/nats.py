@@ -158,6 +158,19 @@ class NatsCluster:
         """The first node's MQTT port."""
         return self.nodes[0].mqtt_port
 
+    def describe(self) -> list[str]:
+        """One line per node for an operator: its name, process id (or "stopped"), MQTT
+        port and monitoring port (`/healthz`, `/varz`, `/jsz` over HTTP)."""
+        lines = []
+        for node in self.nodes:
+            running = node.process is not None and node.process.poll() is None
+            pid = str(node.process.pid) if running and node.process is not None else "stopped"
+            lines.append(
+                f"{node.name}: pid {pid}, mqtt 127.0.0.1:{node.mqtt_port}, "
+                f"monitoring http://127.0.0.1:{node.monitor_port}/healthz"
+            )
+        return lines
+
     def start(self) -> Self:
         """Start every node that is not running; return once each serves MQTT."""
         for node in self.nodes:

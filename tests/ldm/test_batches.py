@@ -85,7 +85,7 @@ def test_a_batch_mixing_participants_keeps_each_ones_order_and_replies(
         kind = topics.parse(m.topic).kind
         if kind in ("bb_input_batch", "bb_reply_batch"):
             entries, bad = batch.decode(m.payload)
-            assert bad == 0 and len(entries) > 1
+            assert bad == 0 and entries  # a batch of one when an envelope travels alone
             mixed += len({p for p, _ in entries}) > 1
     assert mixed > 0, "no batch on the backbone mixed participants"
     assert d.user_core.stats.batches_sent > 0 and d.service_core.stats.batches_sent > 0

@@ -14,9 +14,11 @@ received; each envelope is then checked by whoever reads it, and a malformed lin
 costs only itself.
 
 `Outbox` is the sending side: a worker adds each envelope as it handles what waited,
-and flushes once it has handled all of it. One envelope for a destination goes out as
-a single message on its own topic, several as one batch: under light load nothing
-waits, so nothing is held back.
+and flushes once it has handled all of it, so under light load nothing waits. What it
+sends to one destination always goes on the destination's batch topic, one envelope or
+many: MQTT keeps the order of the messages on one topic, not across topics, so a
+participant's envelope sent alone on its own topic could overtake the one before it in
+a batch (the embedded broker did, under load).
 """
 
 from __future__ import annotations
@@ -88,8 +90,10 @@ class Outbox:
         envelope: bytes,
         qos: int,
     ) -> None:
-        """Hold `envelope` for `pseudonym`: sent on `topic` if it is alone at the next
-        `flush`, else in a batch on `batch_topic`. `envelope` must hold no newline."""
+        """Hold `envelope` for `pseudonym`, to be sent in a batch on `batch_topic` (of
+        one, if it is alone at the next `flush`). `topic`, the envelope's own single
+        topic, is not used for sending: see the module docstring. `envelope` must hold
+        no newline."""
         key = (id(publisher), batch_topic)
         group = self._groups.get(key)
         if group is None:
@@ -134,15 +138,13 @@ class _Group:
         self.size += len(envelope) + len(pseudonym) + 2
 
     def send(self) -> int:
-        """Publish what is held; the number of envelopes sent in a batch (0: none, or
-        a single message)."""
+        """Publish what is held on the batch topic; the number of envelopes sent in a
+        batch of more than one (0: none, or one alone)."""
         entries = self.entries
         batched = 0
-        if len(entries) == 1:
-            self.publisher.publish(self.topic, entries[0][1], self.qos)
-        elif entries:
+        if entries:
             self.publisher.publish(self.batch_topic, encode(entries), self.qos)
-            batched = len(entries)
+            batched = len(entries) if len(entries) > 1 else 0
         self.entries = []
         self.size = 0
         self.qos = 0

@@ -18,9 +18,10 @@ Topics that leave the user cluster carry only pseudonyms.
     ldm/bb/in/{svc_core}/{service}/{user_core}/{pseudonym}   user core -> service core
     ldm/bb/out/{user_core}/{service}/{pseudonym}             service core -> user core
 
-Between the cores, and between a service core and its provider, envelopes that wait
-together travel as one batch (`ldm.wire.batch`) on the same topic without its
-pseudonym level (the pseudonyms are in the batch):
+Between the cores, and between a service core and its provider, envelopes travel as
+batches (`ldm.wire.batch`; of one when an envelope waits alone, so that one topic keeps
+each participant's order) on the same topic without its pseudonym level (the
+pseudonyms are in the batch); the single topics above are still read:
 
     ldm/svc/{service}/in                           core -> provider: a batch of input
     ldm/svc/{service}/out                          provider -> core: a batch of replies

@@ -75,14 +75,12 @@ __all__ = ["CooperativeLaneFilter"]
 
 _OFF_LANE = 1e-3  # eps, per metre: a fix that fits no lane (an outlier, a car park)
 _TURN = math.radians(2.0)  # rebuild a user's table when its road has turned this much
-_CARRY_MIX = 0.05
+_CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new element
 # A receiver spends a share of its time in multipath, its fix then metres off: in the
-# development families 3-10 % of the time (a jump rate of up to 1/60-1/20 per s, each
-# lasting 2-6 s), jumps of 2-6 m; in cities it is the most common receiver fault.
+# development families 3-10 % of the time (up to 1/60-1/20 jumps per s, each lasting
+# 1-9 s), jumps of 1-6 m; in cities it is the most common receiver fault.
 _MULTIPATH_SHARE = 0.05
-_MULTIPATH_SIGMA = (
-    3.0  # m, across the road  # share of a uniform lane belief mixed in when entering a new element
-)
+_MULTIPATH_SIGMA = 3.0  # m, across the road
 
 
 @dataclass

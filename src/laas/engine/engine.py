@@ -11,7 +11,8 @@ Per fix of user u at time t:
     element whose lanes fit u's motion much better, `_plausible`); off every element,
     answer the corrected fix.
  4. Let the lane filter place u on a lane of that element (`LaneFilter.step`).
- 5. Answer with the placed position and its honest 1-sigma across and along the road.
+ 5. Answer with the placed position and its honest 1-sigma across and along the road,
+    its lane probability calibrated (default mode: `calibration`).
 """
 
 from __future__ import annotations

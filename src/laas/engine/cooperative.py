@@ -192,7 +192,8 @@ class CooperativeLaneFilter(LaneFilter):
         s_now, d_now = segment.frame(float(p[0]), float(p[1]))
         t_now = segment.tangent(s_now)
         n_now = np.array([t_now[1], -t_now[0]])
-        o = float(segment.lane_offsets(s_now)[lane])
+        offsets_now = segment.lane_offsets(s_now)
+        o = float(offsets_now[lane])
         var_m = float(n_now @ (track.position_cov + cov) @ n_now)
         w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
         fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
@@ -202,7 +203,7 @@ class CooperativeLaneFilter(LaneFilter):
         # the lane's own point; unsure, it stays between the lanes it cannot tell apart
         # rather than snap onto the wrong one. Its 1-sigma is the mixture's about it,
         # s_x^2 = 1 / (w_lane + w_m) + sum_l P(l) (o_l - o_bar)^2.
-        shift = segment.lane_offsets(s_now) - o
+        shift = offsets_now - o
         mean_shift = float(marginal @ shift)
         spread = float(marginal @ (shift - mean_shift) ** 2)
         cross = math.sqrt(1.0 / (w_lane + w_m) + spread)

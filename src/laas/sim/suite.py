@@ -485,14 +485,14 @@ def _by_users(rows: Sequence[SuiteRow]) -> list[str]:
     return lines
 
 
-def _integrity(rows: Sequence[SuiteRow]) -> list[str]:
+def _integrity(summaries: Sequence[Summary]) -> list[str]:
     """Whether the stated confidence holds: per family and sigma_pos, pooled over runs."""
     lines = [
         "integrity (every answer pooled): ECE; share of all answers that said p >= 0.9 and "
         "were wrong (>= 0.99); share that said >= 0.9; errors within 1 / 2 sigma across and "
         "along (honest: 0.68 / 0.95); runs with AED above the raw fixes'",
     ]
-    for s in summarize(rows):
+    for s in summaries:
         for m in ("default", "oracle") if s.family == "all" else ("default",):
             g = s.integrity[m]
             lines.append(
@@ -525,7 +525,8 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
         f"{'worst':>6}{'id med':>7}{'AED med':>8}{'AED>obs':>8}{'s/run':>7}"
     )
     lines = [head, "", cols, "-" * len(cols)]
-    for s in summarize(rows):
+    summaries = summarize(rows)
+    for s in summaries:
         mine = [r for r in rows if r.sigma_pos == s.sigma_pos and s.family in ("all", r.family)]
         for k, m in enumerate(METHODS):
             secs = float(np.mean([r.methods[m].seconds for r in mine]))
@@ -544,7 +545,7 @@ def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None 
         if s.family == "all":
             lines.append("")
     lines.extend(_by_users(rows))
-    lines.extend(_integrity(rows))
+    lines.extend(_integrity(summaries))
     worst = worst_run(rows)
     lines.append(
         f"worst run (default mode): {worst.family} seed {worst.seed} at sigma_pos "

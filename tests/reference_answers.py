@@ -61,14 +61,14 @@ def cases() -> list[Case]:
     return out
 
 
-def answer_arrays(case: Case, batch: int = 1) -> dict[str, np.ndarray]:
+def answer_arrays(case: Case, max_batch: int = 1) -> dict[str, np.ndarray]:
     """The case's answers as arrays: UTM position, lane key, accuracy (the fixes given
-    to the engine `batch` at a time)."""
-    answers = answer_trace(case.hdmap, case.trace, case.config, batch)
-    return _arrays(case.hdmap, answers)
+    to the engine one at a time, or in batches of up to `max_batch` as the live worker
+    takes them)."""
+    return arrays(case.hdmap, answer_trace(case.hdmap, case.trace, case.config, max_batch))
 
 
-def _arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, np.ndarray]:
+def arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, np.ndarray]:
     n = len(answers)
     xy = np.full((n, 2), np.nan)
     acc = np.full((n, 2), np.nan)
@@ -83,9 +83,9 @@ def _arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, 
     return {"xy": xy, "acc": acc, "lane": lane.astype(str)}
 
 
-def compare(case: Case, record: dict[str, np.ndarray], batch: int = 1) -> tuple[int, float]:
+def compare(case: Case, record: dict[str, np.ndarray], max_batch: int = 1) -> tuple[int, float]:
     """(answers on another lane, largest position difference in m) against the record."""
-    now = answer_arrays(case, batch)
+    now = answer_arrays(case, max_batch)
     if now["lane"].shape != record["lane"].shape:  # another trace: the case itself changed
         return len(now["lane"]), float("inf")
     other = int(np.sum(now["lane"] != record["lane"]))
@@ -106,7 +106,9 @@ def load_record() -> dict[str, dict[str, np.ndarray]]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--record", action="store_true", help="write the record anew")
-    parser.add_argument("--batch", type=int, default=1, help="fixes per engine call")
+    parser.add_argument(
+        "--max-batch", type=int, default=1, help="fixes per engine call at most (1: one at a time)"
+    )
     a = parser.parse_args()
     if a.record:
         flat = {}
@@ -120,7 +122,7 @@ def main() -> int:
     record = load_record()
     bad = 0
     for case in cases():
-        other, worst = compare(case, record[case.name], a.batch)
+        other, worst = compare(case, record[case.name], a.max_batch)
         ok = other == 0 and worst <= TOLERANCE_M
         bad += not ok
         verdict = "ok" if ok else "DIFF"

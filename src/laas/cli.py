@@ -229,6 +229,7 @@ def _bench_worker_only(a: argparse.Namespace) -> int:
         duration=a.duration,
         seed=a.seed,
         batch=a.batch,
+        spread=a.spread,
         progress=lambda line: print(line, file=sys.stderr, flush=True),
     )
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_worker_report(report))

@@ -72,6 +72,7 @@ is several participants.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -131,8 +132,9 @@ class CommonError:
         self._log = -0.5 * (sq[:, None] + sq[None, :]) / prior_sigma**2  # (n, n): [east, north]
         self._win = (0, n, 0, n)
         self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
-        self._cells_key: tuple[object, ...] = ()
-        self._cells_idx = np.zeros((0, 0), dtype=np.intp)
+        # the u-grid cells of n . b over the window, per normal n, while the window stays
+        self._cells_win: tuple[int, int, int, int] = (0, 0, 0, 0)
+        self._cells_of: dict[tuple[float, float], tuple[np.ndarray, tuple[int, int]]] = {}
         self._cells_span = (0, 0)
         self._drift_var = drift**2
         self._pending_var = 0.0
@@ -213,14 +215,28 @@ class CommonError:
         return self._w, self._cells(normal)
 
     def _cells(self, normal: np.ndarray) -> np.ndarray:
-        """The u-grid cell of n . b for each window cell (kept while the window and n are)."""
-        key = (self._win, float(normal[0]), float(normal[1]))
-        if key != self._cells_key:
+        """The u-grid cell of n . b for each window cell (kept per n while the window is)."""
+        if self._cells_win != self._win:
+            self._cells_win, self._cells_of = self._win, {}
+        key = (float(normal[0]), float(normal[1]))
+        found = self._cells_of.get(key)
+        if found is None:
             i0, i1, j0, j1 = self._win
             proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
-            self._cells_key, self._cells_idx = key, self.u.index(proj)
-            self._cells_span = (int(self._cells_idx.min()), int(self._cells_idx.max()) + 1)
-        return self._cells_idx
+            idx = self.u.index(proj)
+            found = self._cells_of[key] = (idx, (int(idx.min()), int(idx.max()) + 1))
+        self._cells_span = found[1]
+        return found[0]
+
+    def cells_many(self, normals: np.ndarray) -> np.ndarray:
+        """`_cells` of each of (n, 2) normals, stacked: (n, window rows, window columns)."""
+        return np.stack([self._cells(normal) for normal in normals])
+
+    def window(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], float]:
+        """(p(b) on the window, the window's east and north axes, a cell's own variance
+        res^2 / 12): what a posterior moment over the window needs."""
+        i0, i1, j0, j1 = self._win
+        return self._w, (self._axis[i0:i1], self._axis[j0:j1]), self._res**2 / 12.0
 
     def span(self, normal: np.ndarray) -> tuple[int, int]:
         """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
@@ -240,15 +256,44 @@ class CommonError:
         """Fold in evidence about u = n . b: log p(b) += log_c[cell of n . b - lo] (log_c
         given on the u-grid from cell `lo`, covering at least `span(normal)`); in a robust
         area, as `user`'s renewed part of the one-liar mixture (module docstring)."""
+        self.update_many([(normal, log_c, user, lo)])
+
+    def update_many(
+        self, evidence: Sequence[tuple[np.ndarray, np.ndarray, str | None, int]]
+    ) -> None:
+        """`update` with the evidence of a batch of fixes, (normal, log_c, user, lo) each,
+        as one measurement update: log p(b) += sum_k log_c_k[cell of n_k . b - lo_k],
+        then the window shrunk and the moments taken once."""
         i0, i1, j0, j1 = self._win
-        cells = self._cells(normal) - lo if lo else self._cells(normal)
-        if self.cap is not None and user is not None:
-            self._robust(user, log_c[cells])
-        else:
-            evidence = log_c[cells]
-            sub = self._log[i0:i1, j0:j1] + evidence
-            self._log[i0:i1, j0:j1] = sub - sub.max()
-        self.updates += 1
+        sub = self._log[i0:i1, j0:j1]
+        for normal, log_c, user, lo in evidence:
+            cells = self._cells(normal) - lo if lo else self._cells(normal)
+            if self.cap is not None and user is not None:
+                self._robust(user, log_c[cells])
+                sub = self._log[i0:i1, j0:j1]
+            else:
+                sub += log_c[cells]
+        self._settle(sub, len(evidence))
+
+    def update_stacked(
+        self, normals: np.ndarray, log_c: np.ndarray, lo: np.ndarray, users: Sequence[str]
+    ) -> None:
+        """`update_many` for stacked evidence: log_c (n, H), user k's from u-cell lo[k]."""
+        if self.cap is not None:
+            self.update_many([(normals[k], log_c[k], users[k], int(lo[k])) for k in range(len(lo))])
+            return
+        i0, i1, j0, j1 = self._win
+        cells = self.cells_many(normals) - lo[:, None, None]
+        rows = np.arange(len(lo))[:, None, None]
+        sub = self._log[i0:i1, j0:j1]
+        sub += log_c[rows, cells].sum(axis=0)
+        self._settle(sub, len(lo))
+
+    def _settle(self, sub: np.ndarray, count: int) -> None:
+        """After an update of the window `sub` (a view of log p): normalised, shrunk,
+        its moments taken."""
+        sub -= sub.max()
+        self.updates += count
         self._shrink()
         self._moments()
 

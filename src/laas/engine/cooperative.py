@@ -60,6 +60,7 @@ lane each old lane leads to (the nearest lane at the same place).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.lanefilter import LaneFilter, Placement
+from laas.engine.stacked import conditional_moments, evidence, lane_marginals, pad
 from laas.engine.tracking import Track
 from laas.engine.transition import lane_transition, motion_fit
 from laas.map.hdmap import Segment
@@ -91,6 +93,29 @@ class _Lanes:
     area: CommonError
     normal: np.ndarray  # (2,) the road normal the table is conditioned on
     alpha: np.ndarray  # (U, L): P(lane | u = normal . b) on the area's u-grid
+
+
+@dataclass(slots=True)
+class _User:
+    """One user's fix in a batch, prepared for its area's stacked step: its lane table
+    (a view of the kept one, updated in place) on u-cells [lo, hi), its fix's lateral
+    offset d and the lane centres there, the prediction's transition and motion fit
+    (raised to dt / tau), and its evidence's width s and weight w."""
+
+    user: str
+    track: Track
+    segment: Segment
+    area: CommonError
+    normal: np.ndarray
+    alpha: np.ndarray
+    lo: int
+    hi: int
+    d: float
+    offsets: np.ndarray
+    transition: np.ndarray
+    fit: np.ndarray
+    sigma: float
+    weight: float
 
 
 class CooperativeLaneFilter(LaneFilter):
@@ -121,7 +146,38 @@ class CooperativeLaneFilter(LaneFilter):
     def segment_groups(self) -> int:
         return len({lanes.segment.id for lanes in list(self._lanes.values())})
 
+    def corrections(self, positions: np.ndarray, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each area of the batch brought to the batch's time t once, then read."""
+        areas = [self._errors.at(p) for p in positions]
+        for area in {id(a): a for a in areas}.values():
+            area.predict(t)
+        return [(area.b, area.P) for area in areas]
+
     def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
+        return self.step_many([(user, track, segment, t)])[0]
+
+    def step_many(self, work: Sequence[tuple[str, Track, Segment, float]]) -> list[Placement]:
+        """One batch: every user's fix weighed against its area's common error as it
+        stood before the batch, the evidence of the whole batch folded into each area in
+        one measurement update, then every user placed on the posterior that all of it
+        gives. Given b the users' lanes are independent, so the posterior of b is the same
+        as fix by fix; what changes is that a user's answer also sees the evidence of the
+        fixes that came with it. The arithmetic runs per area on stacked arrays
+        (`stacked`); what is each user's own (its geometry, table and motion) is
+        prepared user by user (`_prepare`)."""
+        users = [self._prepare(user, track, segment) for user, track, segment, _ in work]
+        by_area: dict[int, list[int]] = {}
+        for k, u in enumerate(users):
+            by_area.setdefault(id(u.area), []).append(k)
+        out: list[Placement | None] = [None] * len(work)
+        for ks in by_area.values():
+            for k, placement in zip(ks, self._area_step([users[k] for k in ks]), strict=True):
+                out[k] = placement
+        return [p for p in out if p is not None]
+
+    def _prepare(self, user: str, track: Track, segment: Segment) -> _User:
+        """What one user brings to the batch: its table, the prediction's transition
+        and motion fit, its fix's offset and evidence width (module docstring)."""
         c = self.config
         area = self._errors.at(track.position)
         p = track.position
@@ -130,7 +186,7 @@ class CooperativeLaneFilter(LaneFilter):
         normal = np.array([tangent[1], -tangent[0]])
         offsets = segment.lane_offsets(s_f)
         alpha = self._table(user, segment, area, normal, track.position)
-
+        self._lanes[user] = _Lanes(segment, area, normal, alpha)
         # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
         # and its type's speeds.
         v = track.velocity
@@ -155,39 +211,76 @@ class CooperativeLaneFilter(LaneFilter):
         # read nothing else, and the margin keeps fresh the cells the posterior could grow
         # into before this user's next fix. The rest of the user's table stays as it was.
         lo, hi = area.span(normal)
-        a = (alpha[lo:hi] @ transition) * fit**memory
-
         # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
         # s^2 = s_lane^2 + s_rx^2 + k n'P n (s_rx: the receiver's own lasting error, which
         # no filtering removes). Successive filtered fixes share their errors, so each
         # counts as weaker evidence than its covariance says (k = filtered_inflation; a
         # raw fix, the Kalman filter off, has independent noise and k = 1).
         k = c.filtered_inflation if c.kalman else 1.0
-        s = math.sqrt(
+        sigma = math.sqrt(
             c.sigma_lane**2 + c.sigma_receiver**2 + k * float(normal @ track.position_cov @ normal)
         )
-        r = (d_f - area.u.values[lo:hi])[:, None] - offsets[None, :]
-        like = _OFF_LANE + _lateral_likelihood(r, s)
         # A receiver's errors persist from fix to fix at any rate: however often it
         # reports, its evidence counts at most once per evidence_interval seconds,
         # like^w with w = min(1, dt / evidence_interval).
         w = 1.0 if track.dt <= 0.0 else min(1.0, track.dt / c.evidence_interval)
-        like = like**w
-        joint = a * like
-        c_u = joint.sum(axis=1)
+        return _User(
+            user, track, segment, area, normal, alpha, lo, hi, d_f, offsets,
+            transition, fit**memory, sigma, w,
+        )  # fmt: skip
+
+    def _area_step(self, users: list[_User]) -> list[Placement]:
+        """The module docstring's prediction, evidence, update of b and answers for the
+        users of one area, stacked (`stacked`)."""
+        area = users[0].area
+        h = max(u.hi - u.lo for u in users)
+        lanes = max(len(u.offsets) for u in users)
+        lo = np.array([u.lo for u in users])
+        # each user's u-cells lo..lo + H (a padded cell reads the grid's last value)
+        cell = np.minimum(lo[:, None] + np.arange(h), area.u.size - 1)
+        d = np.array([u.d for u in users])
+        residual = (d[:, None] - area.u.values[cell])[:, :, None] - pad(
+            [u.offsets for u in users], (lanes,)
+        )[:, None, :]
+        alpha, log_c = evidence(
+            pad([u.alpha[u.lo : u.hi] for u in users], (h, lanes)),
+            pad([u.transition for u in users], (lanes, lanes)),
+            pad([u.fit for u in users], (lanes,)),
+            residual,
+            np.array([u.sigma for u in users]),
+            np.array([u.weight for u in users]),
+            _OFF_LANE,
+            _MULTIPATH_SHARE,
+            _MULTIPATH_SIGMA,
+        )
+        for k, u in enumerate(users):
+            u.alpha[u.lo : u.hi] = alpha[k, : u.hi - u.lo, : len(u.offsets)]
+        normals = np.array([u.normal for u in users])
         # The common error: log p(b) += log c(n . b); with K = max_user_evidence, the
         # user's whole part of the one-liar mixture renewed instead (common_error).
-        area.update(normal, np.log(np.maximum(c_u, 1e-300)), user, lo)
-        alpha[lo:hi] = joint / np.maximum(c_u, 1e-300)[:, None]
-        self._lanes[user] = _Lanes(segment, area, normal, alpha)
+        area.update_stacked(normals, log_c, lo, [u.user for u in users])
 
         # The lane: the marginal over u; the common error given that lane.
-        marginal = area.project(normal)[lo:hi] @ alpha[lo:hi]
-        marginal /= marginal.sum()
-        lane = int(np.argmax(marginal))
-        b, cov = area.conditional(normal, alpha[:, lane])
+        weights, axes, cell_var = area.window()
+        cells = area.cells_many(normals)
+        marginal = lane_marginals(weights, cells, alpha, lo)
+        lane = np.argmax(marginal, axis=1)
+        b, cov, held = conditional_moments(weights, cells, alpha, lo, lane, axes, cell_var)
+        out = []
+        for k, u in enumerate(users):
+            if not held[k]:
+                b[k], cov[k] = area.b, area.P
+            m = marginal[k, : len(u.offsets)]
+            out.append(self._place(u, m, int(lane[k]), b[k], cov[k]))
+        return out
 
-        # Place u: its filtered position, b removed, fused with the lane centre.
+    def _place(
+        self, u: _User, marginal: np.ndarray, lane: int, b: np.ndarray, cov: np.ndarray
+    ) -> Placement:
+        """Place the user on its lane: its filtered position, b removed, fused with the
+        lane centre (module docstring)."""
+        c = self.config
+        segment, track = u.segment, u.track
         p = track.position - b
         s_now, d_now = segment.frame(float(p[0]), float(p[1]))
         t_now = segment.tangent(s_now)
@@ -265,13 +358,3 @@ def _reproject(
     held = den > 1e-12
     out[held] = num[held] / den[held, None]
     return out
-
-
-def _lateral_likelihood(r: np.ndarray, s: float) -> np.ndarray:
-    """p(r) of a lateral residual r: N(0, s^2), or with probability pi (multipath)
-    N(0, s^2 + s_mp^2):  (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 + s_mp^2)."""
-    wide = math.sqrt(s * s + _MULTIPATH_SIGMA**2)
-    k = 1.0 / math.sqrt(2.0 * math.pi)
-    return (1.0 - _MULTIPATH_SHARE) * k / s * np.exp(-0.5 * (r / s) ** 2) + (
-        _MULTIPATH_SHARE * k / wide * np.exp(-0.5 * (r / wide) ** 2)
-    )

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -83,14 +84,15 @@ class Engine:
     def process_many(
         self, fixes: Sequence[tuple[str, GpsMeasurement]]
     ) -> list[CorrectedPosition | None]:
-        """Correct a batch of fixes, each as `process` would in turn: the same answers,
-        in the same order.
+        """Correct a batch of fixes (fixes that waited together), one answer each, in order.
 
-        What does not depend on the other users is done for the whole batch at once:
-        the projections to and from the map's frame, and the Kalman step of every track
-        (`kalman_steps`; a run of the batch in which no user has two fixes at a time).
-        The lane filter and the common error then take the fixes one by one, in order,
-        as each fix's evidence changes what the next one is judged against.
+        A batch is one step of the whole crowd: the projections to and from the map's
+        frame, the Kalman step of every track (`kalman_steps`), the road elements
+        (`HdMap.locate_many`) and the lane filter (`LaneFilter.step_many`: in default
+        mode, one measurement update of each area's common error at the batch's time)
+        are each done once for all its fixes. A user with two fixes in the batch splits
+        it: a run of the batch takes at most one fix per user, the runs in order. A batch
+        of one is the fix alone (`process`).
         """
         if not fixes:
             return []
@@ -109,9 +111,7 @@ class Engine:
             pending: list[tuple[Track, Fix]] = []
             tracks = [self._admit(fixes[i][0], self._fix(fixes[i][1], en[i]), pending) for i in run]
             kalman_steps([t for t, _ in pending], [f for _, f in pending])
-            for i, track in zip(run, tracks, strict=True):
-                user, measurement = fixes[i]
-                placed.append(None if track is None else self._place(user, measurement, track))
+            placed.extend(self._place_run(fixes[start:end], tracks))
             start = end
         return self._answers(placed)
 
@@ -149,22 +149,42 @@ class Engine:
             pending.append((track, fix))
         return track
 
-    def _place(self, user: str, measurement: GpsMeasurement, track: Track) -> _Answer:
-        """Steps 2-5 of the module docstring for a fix already in its track."""
+    def _place_run(
+        self, fixes: Sequence[tuple[str, GpsMeasurement]], tracks: Sequence[Track | None]
+    ) -> list[_Answer | None]:
+        """Steps 2-5 of the module docstring for a run of fixes already in their tracks
+        (None: refused), every user at most once."""
         c = self.config
-        t = measurement.timestamp / 1000.0
-        b, b_cov = self._lanes.correction(track.position, t)
-        q = track.position - b
-        segment = self.map.locate(float(q[0]), float(q[1]), c.max_map_distance)
-        if segment is not None and c.mode == "default":
-            segment = self._plausible(segment, q, b_cov, track)
-        self.stats.answered += 1
-        if segment is None:
-            self._lanes.leave(user)
-            self.stats.off_map += 1
-            return self._off_map(measurement, q, track.position_cov + b_cov)
-        placed = self._lanes.step(user, track, segment, t)
-        return self._answer(measurement, segment, placed, track)
+        live = [k for k, track in enumerate(tracks) if track is not None]
+        out: list[_Answer | None] = [None] * len(tracks)
+        if not live:
+            return out
+        ts = [fixes[k][1].timestamp / 1000.0 for k in live]
+        positions = np.array([cast(Track, tracks[k]).position for k in live])
+        corrections = self._lanes.corrections(positions, max(ts))
+        q = positions - np.array([b for b, _ in corrections])
+        segments = self.map.locate_many(q, c.max_map_distance)
+        work: list[tuple[str, Track, Segment, float]] = []
+        at: list[int] = []
+        for j, k in enumerate(live):
+            user, measurement = fixes[k]
+            track = cast(Track, tracks[k])
+            segment = segments[j]
+            self.stats.answered += 1
+            if segment is not None and c.mode == "default":
+                segment = self._plausible(segment, q[j], corrections[j][1], track)
+            if segment is None:
+                self._lanes.leave(user)
+                self.stats.off_map += 1
+                out[k] = self._off_map(measurement, q[j], track.position_cov + corrections[j][1])
+                continue
+            work.append((user, track, segment, ts[j]))
+            at.append(k)
+        for k, (_, track, segment, _), placement in zip(
+            at, work, self._lanes.step_many(work), strict=True
+        ):
+            out[k] = self._answer(fixes[k][1], segment, placement, track)
+        return out
 
     def _plausible(
         self, segment: Segment, q: np.ndarray, b_cov: np.ndarray, track: Track

@@ -9,6 +9,7 @@ lane estimated jointly). `make_lane_filter` picks one by `EngineConfig.mode`.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,15 @@ class LaneFilter(ABC):
     @abstractmethod
     def step(self, user: str, track: Track, segment: Segment, t: float) -> Placement:
         """Place `user`, whose track has just taken a fix at time t, in `segment`."""
+
+    def corrections(self, positions: np.ndarray, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """`correction` at each of (n, 2) positions, for a batch whose time is t."""
+        return [self.correction(p, t) for p in positions]
+
+    def step_many(self, work: Sequence[tuple[str, Track, Segment, float]]) -> list[Placement]:
+        """Place a batch of (user, track, segment, t), every user at most once; by default
+        `step` of each in turn."""
+        return [self.step(user, track, segment, t) for user, track, segment, t in work]
 
     @abstractmethod
     def leave(self, user: str) -> None:

@@ -16,8 +16,9 @@ ceiling: fixes per second on one core = 1e6 / (total us per fix).
 Two workers take the same fixes in the same run, chunk by chunk in turn: one is handed
 them one at a time (`LaasService.handle`, as a worker with an empty queue), the other
 in batches of `batch` in arrival order (`LaasService.handle_many`, as the provider hands
-over what waited together under load). Both give the same answers; the figures say what
-the batch saves.
+over what waited together under load). A batch is one step of the engine for all its
+fixes (`Engine.process_many`), whose answers stay within the bounds that
+`tests/test_same_answers.py` holds them to; the figures say what the batch saves.
 
 The reference is one Kalman step as filterpy does it (`KalmanFilter.predict` with
 `Q_discrete_white_noise`, then `update`, on the track's 4-state model), timed in the same
@@ -175,16 +176,21 @@ def bench_worker(
     duration: float = 50.0,
     seed: int = 0,
     batch: int = 64,
+    spread: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> WorkerBenchReport:
-    """Feed a roaming scenario's fixes, encrypted, through the worker's code (module doc)."""
+    """Feed a roaming scenario's fixes, encrypted, through the worker's code (module doc):
+    every user's fixes on the whole second, as GNSS receivers emit them, or with `spread`
+    at a random phase each (the roaming scenario's own)."""
     if batch < 1:
         raise ValueError(f"batch must be at least 1, not {batch}")
     say = progress or (lambda _line: None)
     hdmap = HdMap.load(bundled_map(map_name))
-    trace = simulate_with(
-        hdmap, roam_scenario(hdmap, seed, users, duration), seed, sigma_pos=1.0, sigma_vel=0.25
-    )
+    scenario = roam_scenario(hdmap, seed, users, duration)
+    if not spread:
+        on_the_second = tuple(u.model_copy(update={"phase": 0.0}) for u in scenario.users)
+        scenario = scenario.model_copy(update={"users": on_the_second})
+    trace = simulate_with(hdmap, scenario, seed, sigma_pos=1.0, sigma_vel=0.25)
     single = _Lane(hdmap, None)
     batched = _Lane(hdmap, single.provider)  # the same key: both open the same messages
     say(f"sealing {len(trace.fixes)} fixes of {users} users on {map_name}")

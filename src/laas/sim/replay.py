@@ -6,6 +6,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from laas.config import EngineConfig
+from laas.engine.batches import in_batches
 from laas.engine.engine import Engine
 from laas.errors import TraceError
 from laas.map.hdmap import HdMap
@@ -30,20 +31,28 @@ def replay(
     config: EngineConfig | None = None,
     on_error: Callable[[TraceError], None] | None = None,
 ) -> Iterator[ReplayResult]:
-    """Feed the trace to one engine in file order; bad lines go to `on_error`.
+    """Feed the trace to one engine in file order, in batches as the live worker takes
+    them (`laas.engine.batches`); bad lines go to `on_error`.
 
     Lines the engine refuses (a duplicate or an older timestamp of the same user) are
     reported to `on_error` too, and produce no answer.
     """
     engine = Engine(hdmap, config)
-    for item in lines:
-        if isinstance(item, TraceError):
-            if on_error is not None:
-                on_error(item)
-            continue
-        answer = engine.process(item.user, item.measurement)
-        if answer is None:
-            if on_error is not None:
+
+    def good() -> Iterator[TraceLine]:
+        for item in lines:
+            if isinstance(item, TraceError):
+                if on_error is not None:
+                    on_error(item)
+            else:
+                yield item
+
+    for batch in in_batches(good(), lambda item: item.measurement.timestamp):
+        answers = engine.process_many([(item.user, item.measurement) for item in batch])
+        for item, answer in zip(batch, answers, strict=True):
+            if answer is not None:
+                yield ReplayResult(item.line, item.user, answer)
+            elif on_error is not None:
                 on_error(
                     TraceError(
                         f"line {item.line}: user {item.user!r}: timestamp "
@@ -51,5 +60,3 @@ def replay(
                         "skipped"
                     )
                 )
-            continue
-        yield ReplayResult(item.line, item.user, answer)

@@ -28,6 +28,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine import Engine
+from laas.engine.batches import MAX_BATCH, in_batches
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.sim.integrity import IntegrityTally, lane_right
@@ -62,15 +63,16 @@ class RunResult:
 
 
 def answer_trace(
-    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None, batch: int = 1
+    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None, max_batch: int = MAX_BATCH
 ) -> list[CorrectedPosition | None]:
-    """A fresh engine's answer to every fix of a simulated trace, in order, given to
-    it `batch` fixes at a time (`Engine.process_many`; the answers are the same)."""
+    """A fresh engine's answer to every fix of a simulated trace, in order, given to it
+    in batches as the live worker takes them (`laas.engine.batches`; `max_batch` 1: one
+    at a time)."""
     engine = Engine(hdmap, config)
     fixes = [(f.user, f.measurement) for f in trace.fixes]
     out: list[CorrectedPosition | None] = []
-    for i in range(0, len(fixes), batch):
-        out.extend(engine.process_many(fixes[i : i + batch]))
+    for batch in in_batches(fixes, lambda f: f[1].timestamp, max_batch=max_batch):
+        out.extend(engine.process_many(batch))
     return out
 
 

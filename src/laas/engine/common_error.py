@@ -228,15 +228,25 @@ class CommonError:
         self._cells_span = found[1]
         return found[0]
 
-    def cells_many(self, normals: np.ndarray) -> np.ndarray:
-        """`_cells` of each of (n, 2) normals, stacked: (n, window rows, window columns)."""
-        return np.stack([self._cells(normal) for normal in normals])
-
-    def window(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], float]:
-        """(p(b) on the window, the window's east and north axes, a cell's own variance
-        res^2 / 12): what a posterior moment over the window needs."""
+    def u_moments(self, normal: np.ndarray) -> np.ndarray:
+        """(U, 6): for each u-cell k of n . b, the sums over the window's cells b with
+        n . b in k of p(b) times 1, b_e, b_n, b_e^2, b_e b_n, b_n^2. A weight g(u) on the
+        u-grid then has its moments of b in O(U):  E_g[b] = sum_k g_k M1_k / sum_k g_k M0_k,
+        and the same for the second moments."""
         i0, i1, j0, j1 = self._win
-        return self._w, (self._axis[i0:i1], self._axis[j0:j1]), self._res**2 / 12.0
+        be = np.broadcast_to(self._axis[i0:i1, None], self._w.shape)
+        bn = np.broadcast_to(self._axis[None, j0:j1], self._w.shape)
+        idx = self._cells(normal).ravel()
+        w = self._w
+        terms = (w, w * be, w * bn, w * be * be, w * be * bn, w * bn * bn)
+        return np.stack(
+            [np.bincount(idx, weights=t.ravel(), minlength=self.u.size) for t in terms], axis=1
+        )
+
+    @property
+    def cell_var(self) -> float:
+        """A grid cell's own variance of b per axis, res^2 / 12."""
+        return self._res**2 / 12.0
 
     def span(self, normal: np.ndarray) -> tuple[int, int]:
         """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
@@ -282,11 +292,20 @@ class CommonError:
         if self.cap is not None:
             self.update_many([(normals[k], log_c[k], users[k], int(lo[k])) for k in range(len(lo))])
             return
+        # users along one normal read the same cells (and from the same lo: the span
+        # depends on the normal and the window only), so their log c add up first
         i0, i1, j0, j1 = self._win
-        cells = self.cells_many(normals) - lo[:, None, None]
-        rows = np.arange(len(lo))[:, None, None]
         sub = self._log[i0:i1, j0:j1]
-        sub += log_c[rows, cells].sum(axis=0)
+        groups: dict[tuple[float, float], tuple[int, np.ndarray]] = {}
+        for k, normal in enumerate(normals):
+            key = (float(normal[0]), float(normal[1]))
+            found = groups.get(key)
+            if found is None:
+                groups[key] = (k, log_c[k].copy())
+            else:
+                found[1][:] += log_c[k]
+        for k, summed in groups.values():
+            sub += summed[self._cells(normals[k]) - lo[k]]
         self._settle(sub, len(lo))
 
     def _settle(self, sub: np.ndarray, count: int) -> None:
@@ -526,7 +545,10 @@ class CommonErrorField:
         self._cap = cap
         self.areas: list[CommonError] = []
         self._cells: dict[tuple[int, int], list[CommonError]] = {}
-        self._last: tuple[tuple[float, float], CommonError | None] = ((math.nan, 0.0), None)
+        # the areas of the places asked about since `forget_places`: a batch asks each
+        # fix's place twice, for its correction and for its step (areas are never removed,
+        # so an answer stays true; the memo only bounds how much is kept)
+        self._memo: dict[tuple[float, float], CommonError] = {}
 
     def _cell(self, xy: np.ndarray) -> tuple[int, int]:
         return math.floor(float(xy[0]) / self.size), math.floor(float(xy[1]) / self.size)
@@ -534,11 +556,14 @@ class CommonErrorField:
     def at(self, xy: np.ndarray) -> CommonError:
         """The area whose centre is nearest `xy`, created if none is within size / 2."""
         key = (float(xy[0]), float(xy[1]))
-        if key == self._last[0] and self._last[1] is not None:
-            return self._last[1]  # the same place again: a fix's correction, then its step
-        area = self._nearest(xy)
-        self._last = (key, area)
+        area = self._memo.get(key)
+        if area is None:
+            area = self._memo[key] = self._nearest(xy)
         return area
+
+    def forget_places(self) -> None:
+        """Empty the memo of `at` (a batch starts)."""
+        self._memo.clear()
 
     def _nearest(self, xy: np.ndarray) -> CommonError:
         best: CommonError | None = None

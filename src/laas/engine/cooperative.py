@@ -62,15 +62,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.lanefilter import LaneFilter, Placement
-from laas.engine.stacked import conditional_moments, evidence, lane_marginals, pad
+from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import Track
-from laas.engine.transition import lane_transition, motion_fit
+from laas.engine.transition import LaneTraits, lane_transition_many, motion_fit_many
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -131,6 +132,7 @@ class CooperativeLaneFilter(LaneFilter):
             config.max_user_evidence,
         )
         self._lanes: dict[str, _Lanes] = {}
+        self._traits: dict[str, LaneTraits] = {}  # per road element
 
     def common_errors(self) -> list[CommonError]:
         return list(self._errors.areas)
@@ -148,6 +150,7 @@ class CooperativeLaneFilter(LaneFilter):
 
     def corrections(self, positions: np.ndarray, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each area of the batch brought to the batch's time t once, then read."""
+        self._errors.forget_places()
         areas = [self._errors.at(p) for p in positions]
         for area in {id(a): a for a in areas}.values():
             area.predict(t)
@@ -162,72 +165,110 @@ class CooperativeLaneFilter(LaneFilter):
         one measurement update, then every user placed on the posterior that all of it
         gives. Given b the users' lanes are independent, so the posterior of b is the same
         as fix by fix; what changes is that a user's answer also sees the evidence of the
-        fixes that came with it. The arithmetic runs per area on stacked arrays
-        (`stacked`); what is each user's own (its geometry, table and motion) is
-        prepared user by user (`_prepare`)."""
-        users = [self._prepare(user, track, segment) for user, track, segment, _ in work]
+        fixes that came with it. The users of a road element are prepared together
+        (`_prepare`), those of an area stepped together (`_area_step`, `stacked`)."""
+        by_segment: dict[str, list[int]] = {}
+        for k, (_, _, segment, _) in enumerate(work):
+            by_segment.setdefault(segment.id, []).append(k)
+        users: list[_User] = [cast(_User, None)] * len(work)
+        for ks in by_segment.values():
+            for k, u in zip(ks, self._prepare([work[k] for k in ks]), strict=True):
+                users[k] = u
         by_area: dict[int, list[int]] = {}
         for k, u in enumerate(users):
             by_area.setdefault(id(u.area), []).append(k)
-        out: list[Placement | None] = [None] * len(work)
+        out: list[Placement] = [cast(Placement, None)] * len(work)
         for ks in by_area.values():
             for k, placement in zip(ks, self._area_step([users[k] for k in ks]), strict=True):
                 out[k] = placement
-        return [p for p in out if p is not None]
+        return out
 
-    def _prepare(self, user: str, track: Track, segment: Segment) -> _User:
-        """What one user brings to the batch: its table, the prediction's transition
-        and motion fit, its fix's offset and evidence width (module docstring)."""
+    def _prepare(self, work: Sequence[tuple[str, Track, Segment, float]]) -> list[_User]:
+        """What the users of one road element bring to the batch: their tables, the
+        prediction's transition and motion fit, their fixes' offsets and evidence
+        widths (module docstring), as arrays over the users."""
         c = self.config
-        area = self._errors.at(track.position)
-        p = track.position
-        s_f, d_f = segment.frame(float(p[0]), float(p[1]))
-        tangent = segment.tangent(s_f)
-        normal = np.array([tangent[1], -tangent[0]])
-        offsets = segment.lane_offsets(s_f)
-        alpha = self._table(user, segment, area, normal, track.position)
-        self._lanes[user] = _Lanes(segment, area, normal, alpha)
+        segment = work[0][2]
+        tracks = [track for _, track, _, _ in work]
+        position = np.array([track.position for track in tracks])
+        velocity = np.array([track.velocity for track in tracks])
+        dt = np.array([track.dt for track in tracks])
+        frame = segment.frame_many(position)
+        tangent = segment.tangent_many(frame[:, 0])
+        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        offsets = segment.lane_offsets_many(frame[:, 0])
         # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
         # and its type's speeds.
-        v = track.velocity
-        fit = motion_fit(segment.lanes, float(v @ tangent), track.last_fix.speed)
+        traits = self._traits.get(segment.id)
+        if traits is None:
+            traits = self._traits[segment.id] = LaneTraits(segment.lanes)
+        speed = np.array([track.last_fix.speed for track in tracks])
+        fit = motion_fit_many(traits, _dot(velocity, tangent), speed)
         # Lane changes: announced by lateral motion beyond its own noise (2 sigma), and
-        # never into a lane that does not fit the motion (its share stays in the lane).
-        v_lat = float(v @ normal)
-        noise = 2.0 * math.sqrt(max(float(normal @ track.velocity_cov @ normal), 0.0))
-        lateral = math.copysign(max(0.0, abs(v_lat) - noise), v_lat)
-        transition = lane_transition(
-            offsets, lateral, track.dt, c.lane_change_rate, c.max_lane_change
+        # never into a lane that does not fit the motion (its share stays in the lane):
+        # T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest stays.
+        v_lat = _dot(velocity, normal)
+        v_cov = np.array([track.velocity_cov for track in tracks])
+        noise = 2.0 * np.sqrt(np.maximum(_quad(normal, v_cov), 0.0))
+        lateral = np.copysign(np.maximum(0.0, np.abs(v_lat) - noise), v_lat)
+        right, left = lane_transition_many(
+            offsets, lateral, dt, c.lane_change_rate, c.max_lane_change
         )
-        transition *= fit[None, :] / fit.max()
-        np.fill_diagonal(transition, 0.0)
-        np.fill_diagonal(transition, 1.0 - transition.sum(axis=1))
+        scale = fit / fit.max(axis=1, keepdims=True)
+        lanes = offsets.shape[1]
+        step = np.arange(lanes - 1)
+        transition = np.zeros((len(work), lanes, lanes))
+        transition[:, step, step + 1] = right * scale[:, 1:]
+        transition[:, step + 1, step] = left * scale[:, :-1]
+        every = np.arange(lanes)
+        transition[:, every, every] = 1.0 - transition.sum(axis=2)
         # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] F[l]^(dt / tau). Motion is a
         # lasting trait of the user, not news at every fix: it counts once per
         # tau = motion_memory seconds.
-        memory = min(1.0, track.dt / c.motion_memory)
-        # Only the values of u = n . b that the posterior of b still holds, [lo, hi), are
-        # worked on (`CommonError.span`, with a margin): the update of b and the answer
-        # read nothing else, and the margin keeps fresh the cells the posterior could grow
-        # into before this user's next fix. The rest of the user's table stays as it was.
-        lo, hi = area.span(normal)
+        memory = np.minimum(1.0, dt / c.motion_memory)
         # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
         # s^2 = s_lane^2 + s_rx^2 + k n'P n (s_rx: the receiver's own lasting error, which
         # no filtering removes). Successive filtered fixes share their errors, so each
         # counts as weaker evidence than its covariance says (k = filtered_inflation; a
         # raw fix, the Kalman filter off, has independent noise and k = 1).
         k = c.filtered_inflation if c.kalman else 1.0
-        sigma = math.sqrt(
-            c.sigma_lane**2 + c.sigma_receiver**2 + k * float(normal @ track.position_cov @ normal)
-        )
+        p_cov = np.array([track.position_cov for track in tracks])
+        sigma = np.sqrt(c.sigma_lane**2 + c.sigma_receiver**2 + k * _quad(normal, p_cov))
         # A receiver's errors persist from fix to fix at any rate: however often it
         # reports, its evidence counts at most once per evidence_interval seconds,
         # like^w with w = min(1, dt / evidence_interval).
-        w = 1.0 if track.dt <= 0.0 else min(1.0, track.dt / c.evidence_interval)
-        return _User(
-            user, track, segment, area, normal, alpha, lo, hi, d_f, offsets,
-            transition, fit**memory, sigma, w,
-        )  # fmt: skip
+        weight = np.where(
+            dt <= 0.0, 1.0, np.minimum(1.0, np.maximum(dt, 0.0) / c.evidence_interval)
+        )
+        out = []
+        for i, (user, track, _, _) in enumerate(work):
+            area = self._errors.at(track.position)
+            alpha = self._table(user, segment, area, normal[i], position[i])
+            self._lanes[user] = _Lanes(segment, area, normal[i], alpha)
+            # Only the values of u = n . b that the posterior of b still holds, [lo, hi),
+            # are worked on (`CommonError.span`, with a margin): the update of b and the
+            # answer read nothing else, and the margin keeps fresh the cells the posterior
+            # could grow into before this user's next fix. The rest of the table stays.
+            lo, hi = area.span(normal[i])
+            out.append(
+                _User(
+                    user,
+                    track,
+                    segment,
+                    area,
+                    normal[i],
+                    alpha,
+                    lo,
+                    hi,
+                    float(frame[i, 1]),
+                    offsets[i],
+                    transition[i],
+                    fit[i] ** memory[i],
+                    float(sigma[i]),
+                    float(weight[i]),
+                )
+            )
+        return out
 
     def _area_step(self, users: list[_User]) -> list[Placement]:
         """The module docstring's prediction, evidence, update of b and answers for the
@@ -261,11 +302,14 @@ class CooperativeLaneFilter(LaneFilter):
         area.update_stacked(normals, log_c, lo, [u.user for u in users])
 
         # The lane: the marginal over u; the common error given that lane.
-        weights, axes, cell_var = area.window()
-        cells = area.cells_many(normals)
-        marginal = lane_marginals(weights, cells, alpha, lo)
-        lane = np.argmax(marginal, axis=1)
-        b, cov, held = conditional_moments(weights, cells, alpha, lo, lane, axes, cell_var)
+        moments: dict[tuple[float, float], np.ndarray] = {}
+        stacked = np.empty((len(users), h, 6))
+        for k, u in enumerate(users):
+            key = (float(u.normal[0]), float(u.normal[1]))
+            if key not in moments:
+                moments[key] = area.u_moments(u.normal)
+            stacked[k] = moments[key][cell[k]]
+        marginal, lane, b, cov, held = lanes_and_conditionals(stacked, alpha, area.cell_var)
         out = []
         for k, u in enumerate(users):
             if not held[k]:
@@ -357,4 +401,20 @@ def _reproject(
     out = np.tile(marginal, (size, 1))
     held = den > 1e-12
     out[held] = num[held] / den[held, None]
+    return out
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a . b of (g, 2) arrays."""
+    out: np.ndarray = a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
+    return out
+
+
+def _quad(n: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Row-wise n' C n of (g, 2) vectors and (g, 2, 2) covariances."""
+    out: np.ndarray = (
+        n[:, 0] * n[:, 0] * cov[:, 0, 0]
+        + 2.0 * n[:, 0] * n[:, 1] * cov[:, 0, 1]
+        + n[:, 1] * n[:, 1] * cov[:, 1, 1]
+    )
     return out

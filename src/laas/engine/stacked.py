@@ -12,12 +12,11 @@ and a padded cell lies outside the posterior's window, so no cell of b reads it.
                  c[i, h] = sum_l a[i, h, l] like[i, h, l]
     lanes        alpha'[i, h, l] = a[i, h, l] like[i, h, l] / c[i, h]
 
-and, on the area's posterior p(b) once every user's log c is in it,
-
-    p_u[i, h]  = sum of p(b) over the cells b with n_i . b in u-cell lo_i + h
-    P(l)_i     = sum_h p_u[i, h] alpha'[i, h, l]   (normalised)
-    E[b | l*]  = sum_b p(b) alpha'[i, cell(n_i . b) - lo_i, l*_i] b   (normalised), and its
-                 covariance, each cell's own spread res^2 / 12 added as `CommonError` does.
+and, on the area's posterior p(b) once every user's log c is in it, the lane's
+marginal and the common error given the lane (`lanes_and_conditionals`). Both read the
+posterior only through u_i = n_i . b, so they are taken from its moments per u-cell
+(`CommonError.u_moments`), once per distinct normal, in O(H) per user rather than over
+the whole window.
 """
 
 from __future__ import annotations
@@ -27,7 +26,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["conditional_moments", "evidence", "lane_marginals", "pad"]
+__all__ = ["evidence", "lanes_and_conditionals", "pad"]
 
 _K = 1.0 / math.sqrt(2.0 * math.pi)
 
@@ -69,46 +68,29 @@ def evidence(
     return joint / c[:, :, None], np.log(c)
 
 
-def lane_marginals(
-    weights: np.ndarray, cells: np.ndarray, alpha: np.ndarray, lo: np.ndarray
-) -> np.ndarray:
-    """P(l)_i (n, L): the posterior of u_i = n_i . b (window weights p(b), u-cells
-    `cells` (n, window) of each user, its span from `lo`) against its lane table."""
-    n, h, _ = alpha.shape
-    rows = (cells - lo[:, None, None]) + (np.arange(n) * h)[:, None, None]
-    p_u = np.bincount(
-        rows.ravel(), weights=np.broadcast_to(weights, cells.shape).ravel(), minlength=n * h
-    ).reshape(n, h)
-    marginal = np.einsum("nh,nhl->nl", p_u, alpha)
-    out: np.ndarray = marginal / marginal.sum(axis=1, keepdims=True)
-    return out
+def lanes_and_conditionals(
+    moments: np.ndarray, alpha: np.ndarray, cell_var: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(P(l) (n, L), l* (n,), E[b | l*] (n, 2), its covariance (n, 2, 2), held (n,)) from
+    each user's u-moments of the posterior on its span (`CommonError.u_moments`,
+    stacked (n, H, 6)) and its lane table alpha (n, H, L):
 
+        P(l)      = sum_h M0[h] alpha[h, l]                          (normalised)
+        E[b | l*] = sum_h g[h] M1[h] / sum_h g[h] M0[h],   g = alpha[:, l*]
+        Cov       = sum_h g[h] M2[h] / sum_h g[h] M0[h] - E E' + res^2 / 12
 
-def conditional_moments(
-    weights: np.ndarray,
-    cells: np.ndarray,
-    alpha: np.ndarray,
-    lo: np.ndarray,
-    lane: np.ndarray,
-    axes: tuple[np.ndarray, np.ndarray],
-    cell_var: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(E[b | l*_i] (n, 2), its covariance (n, 2, 2), held (n,)): held is False where
-    the lane keeps no mass of the window, and there the caller takes the area's own."""
-    n = alpha.shape[0]
-    users = np.arange(n)[:, None, None]
-    w = weights[None] * alpha[users, cells - lo[:, None, None], lane[:, None, None]]
-    total = w.sum(axis=(1, 2))
-    held = total > 0.0
-    w = w / np.where(held, total, 1.0)[:, None, None]
-    ae, an = axes
-    we, wn = w.sum(axis=2), w.sum(axis=1)
-    me, mn = we @ ae, wn @ an
-    de, dn = ae[None, :] - me[:, None], an[None, :] - mn[:, None]
-    cee = np.einsum("ne,ne->n", we, de * de)
-    cnn = np.einsum("nk,nk->n", wn, dn * dn)
-    cen = np.einsum("ne,nek,nk->n", de, w, dn)
-    cov = np.empty((n, 2, 2))
-    cov[:, 0, 0], cov[:, 1, 1] = cee + cell_var, cnn + cell_var
-    cov[:, 0, 1] = cov[:, 1, 0] = cen
-    return np.stack([me, mn], axis=1), cov, held
+    held is False where the lane keeps no mass of the posterior; there the caller takes
+    the area's own b and P."""
+    marginal = np.einsum("nh,nhl->nl", moments[:, :, 0], alpha)
+    marginal /= marginal.sum(axis=1, keepdims=True)
+    lane = np.argmax(marginal, axis=1)
+    g = alpha[np.arange(len(lane)), :, lane]  # (n, H)
+    sums = np.einsum("nh,nhk->nk", g, moments)  # (n, 6)
+    held = sums[:, 0] > 0.0
+    sums /= np.where(held, sums[:, 0], 1.0)[:, None]
+    me, mn = sums[:, 1], sums[:, 2]
+    cov = np.empty((len(lane), 2, 2))
+    cov[:, 0, 0] = sums[:, 3] - me * me + cell_var
+    cov[:, 1, 1] = sums[:, 5] - mn * mn + cell_var
+    cov[:, 0, 1] = cov[:, 1, 0] = sums[:, 4] - me * mn
+    return marginal, lane, np.stack([me, mn], axis=1), cov, held

@@ -37,9 +37,12 @@ from laas.map.hdmap import Lane
 
 __all__ = [
     "SPEED_LIMITS",
+    "LaneTraits",
     "direction_likelihood",
     "lane_transition",
+    "lane_transition_many",
     "motion_fit",
+    "motion_fit_many",
     "speed_likelihood",
 ]
 
@@ -119,3 +122,49 @@ def motion_fit(lanes: Sequence[Lane], along_speed: float, speed: float) -> np.nd
     types = tuple(lane.type for lane in lanes)
     fit: np.ndarray = direction_likelihood(directions, along_speed) * speed_likelihood(types, speed)
     return fit
+
+
+# -- many users of one road element at once (the default mode's batches) -------------------
+
+_DIRECTION_CODE = {"forward": 1.0, "backward": -1.0}
+
+
+class LaneTraits:
+    """The lanes of one road element as arrays, for `motion_fit_many`: each lane's
+    direction (+1 forward, -1 backward, 0 both) and its type's speed limits (v_max,
+    v_width, floor; a type without limits takes v_max = inf, so S = 1)."""
+
+    __slots__ = ("direction", "floor", "v_max", "v_width")
+
+    def __init__(self, lanes: Sequence[Lane]) -> None:
+        self.direction = np.array([_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes])
+        limits = [SPEED_LIMITS.get(lane.type, (np.inf, 1.0, 1.0)) for lane in lanes]
+        self.v_max, self.v_width, self.floor = (np.array(col) for col in zip(*limits, strict=True))
+
+
+def motion_fit_many(
+    traits: LaneTraits, along_speed: np.ndarray, speed: np.ndarray, wrong_way: float = 0.05
+) -> np.ndarray:
+    """`motion_fit` for (g,) users of one element: (g, L), F = D S as there."""
+    moving = np.abs(along_speed) >= _MOVING
+    # against: the lane's direction opposes the motion along the element
+    against = moving[:, None] & (traits.direction[None, :] == -np.sign(along_speed)[:, None])
+    d = np.where(against, wrong_way, 1.0)
+    z = np.minimum((speed[:, None] - traits.v_max) / traits.v_width, 50.0)
+    s = traits.floor + (1.0 - traits.floor) / (1.0 + np.exp(z))
+    out: np.ndarray = d * s
+    return out
+
+
+def lane_transition_many(
+    offsets: np.ndarray, lateral_speed: np.ndarray, dt: np.ndarray, rate: float, p_max: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """`lane_transition` for (g,) users of one element with lane centres `offsets`
+    (g, L): (P(l -> l+1) (g, L - 1), P(l+1 -> l) (g, L - 1)), the moves to the right
+    and to the left between neighbouring lanes (the rest stays)."""
+    gaps = np.maximum(np.diff(offsets, axis=1), 0.1)
+    drift = (lateral_speed * np.maximum(dt, 0.0))[:, None]
+    base = (rate * dt)[:, None]
+    right = np.minimum(p_max, base + np.maximum(0.0, drift) / gaps)
+    left = np.minimum(p_max, base + np.maximum(0.0, -drift) / gaps)
+    return right, left

@@ -47,6 +47,7 @@ DIRECTIONS: frozenset[str] = frozenset(get_args(Direction))
 FloatArray = npt.NDArray[np.float64]
 
 _OFFSET_STEP = 1.0  # m, station spacing of the cached lane-offset table
+_FEW = 2  # points that `Segment.frame_many` takes one by one (the arrays cost more)
 
 
 @dataclass(frozen=True)
@@ -200,8 +201,12 @@ class Segment:
 
     def frame_many(self, xy: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`frame`, the form a batch calls: (n, 2) UTM points -> (n, 2) of
-        (s, d). (The same as :meth:`frame_array`.)"""
-        return self.frame_array(xy)
+        (s, d). (The same as :meth:`frame_array`; a few points go one by one, which
+        costs less than setting up the arrays.)"""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if len(pts) <= _FEW:
+            return np.array([self.frame(x, y) for x, y in pts.tolist()]).reshape(-1, 2)
+        return self.frame_array(pts)
 
     def point_many(self, s: npt.ArrayLike, d: npt.ArrayLike = 0.0) -> FloatArray:
         """Vectorised :meth:`point`: (n,) stations and offsets -> (n, 2) UTM points, the same

@@ -310,29 +310,46 @@ class CooperativeLaneFilter(LaneFilter):
                 moments[key] = area.u_moments(u.normal)
             stacked[k] = moments[key][cell[k]]
         marginal, lane, b, cov, held = lanes_and_conditionals(stacked, alpha, area.cell_var)
-        out = []
+        b[~held], cov[~held] = area.b, area.P
+        by_segment: dict[str, list[int]] = {}
         for k, u in enumerate(users):
-            if not held[k]:
-                b[k], cov[k] = area.b, area.P
-            m = marginal[k, : len(u.offsets)]
-            out.append(self._place(u, m, int(lane[k]), b[k], cov[k]))
+            by_segment.setdefault(u.segment.id, []).append(k)
+        out: list[Placement] = [cast(Placement, None)] * len(users)
+        for ks in by_segment.values():
+            rows = np.array(ks)
+            width = len(users[ks[0]].offsets)
+            placed = self._place(
+                [users[k] for k in ks], marginal[rows, :width], lane[rows], b[rows], cov[rows]
+            )
+            for k, placement in zip(ks, placed, strict=True):
+                out[k] = placement
         return out
 
     def _place(
-        self, u: _User, marginal: np.ndarray, lane: int, b: np.ndarray, cov: np.ndarray
-    ) -> Placement:
-        """Place the user on its lane: its filtered position, b removed, fused with the
-        lane centre (module docstring)."""
+        self,
+        users: list[_User],
+        marginal: np.ndarray,
+        lane: np.ndarray,
+        b: np.ndarray,
+        cov: np.ndarray,
+    ) -> list[Placement]:
+        """Place users of one road element on their lanes: each filtered position, b
+        removed, fused with the lane centre,
+            d = (o_l* / s_lane^2 + d_m / s_m^2) / (1 / s_lane^2 + 1 / s_m^2),
+            s_m^2 = n' (P_track + P_b*) n."""
         c = self.config
-        segment, track = u.segment, u.track
-        p = track.position - b
-        s_now, d_now = segment.frame(float(p[0]), float(p[1]))
-        t_now = segment.tangent(s_now)
-        n_now = np.array([t_now[1], -t_now[0]])
-        offsets_now = segment.lane_offsets(s_now)
-        o = float(offsets_now[lane])
-        var_m = float(n_now @ (track.position_cov + cov) @ n_now)
-        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / max(var_m, 1e-6)
+        segment = users[0].segment
+        position = np.array([u.track.position for u in users])
+        p_cov = np.array([u.track.position_cov for u in users])
+        frame = segment.frame_many(position - b)
+        s_now, d_now = frame[:, 0], frame[:, 1]
+        tangent = segment.tangent_many(s_now)
+        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        offsets = segment.lane_offsets_many(s_now)
+        rows = np.arange(len(users))
+        o = offsets[rows, lane]
+        var_m = _quad(normal, p_cov + cov)
+        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / np.maximum(var_m, 1e-6)
         fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
         # Across the road the position is the posterior mean over lanes: on lane l the
         # user lies at its centre fused with the measurement as on l*, fused_l = fused +
@@ -340,12 +357,22 @@ class CooperativeLaneFilter(LaneFilter):
         # the lane's own point; unsure, it stays between the lanes it cannot tell apart
         # rather than snap onto the wrong one. Its 1-sigma is the mixture's about it,
         # s_x^2 = 1 / (w_lane + w_m) + sum_l P(l) (o_l - o_bar)^2.
-        shift = offsets_now - o
-        mean_shift = float(marginal @ shift)
-        spread = float(marginal @ (shift - mean_shift) ** 2)
-        cross = math.sqrt(1.0 / (w_lane + w_m) + spread)
-        point = np.array(segment.point(s_now, fused + mean_shift))
-        return Placement(lane, float(marginal[lane]), point, cov, cross)
+        shift = offsets - o[:, None]
+        mean_shift = (marginal * shift).sum(axis=1)
+        spread = (marginal * (shift - mean_shift[:, None]) ** 2).sum(axis=1)
+        cross = np.sqrt(1.0 / (w_lane + w_m) + spread)
+        point = segment.point_many(s_now, fused + mean_shift)
+        return [
+            Placement(
+                int(lane[k]),
+                float(marginal[k, lane[k]]),
+                point[k],
+                cov[k],
+                float(cross[k]),
+                tangent[k],
+            )
+            for k in rows.tolist()
+        ]
 
     def _table(
         self,

@@ -246,8 +246,10 @@ class Engine:
         """The placed position with its 1-sigma across (from the lane filter) and along
         the road: along = sqrt(t' (P_track + P_b) t + s_rx^2)."""
         point = placed.point
-        s, _ = segment.frame(float(point[0]), float(point[1]))
-        tangent = segment.tangent(s)
+        tangent = placed.tangent
+        if tangent is None:
+            s, _ = segment.frame(float(point[0]), float(point[1]))
+            tangent = segment.tangent(s)
         # default mode: the receiver's own lasting error s_rx, which the track does not
         # see, lies along the road as much as across it
         lasting = self.config.sigma_receiver**2 if self.config.mode == "default" else 0.0

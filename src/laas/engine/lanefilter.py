@@ -31,6 +31,7 @@ class Placement:
     point: np.ndarray  # (2,) UTM position on the lane, common error removed
     common_cov: np.ndarray  # (2, 2) covariance of the common error removed, m^2
     cross: float  # 1-sigma across the road, m
+    tangent: np.ndarray | None = None  # (2,) the road's direction at the point, if known
 
 
 class LaneFilter(ABC):

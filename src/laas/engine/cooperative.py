@@ -99,7 +99,7 @@ class _Lanes:
 @dataclass(slots=True)
 class _User:
     """One user's fix in a batch, prepared for its area's stacked step: its lane table
-    (a view of the kept one, updated in place) on u-cells [lo, hi), its fix's lateral
+    (the kept one itself, updated in place on u-cells [lo, hi)), its fix's lateral
     offset d and the lane centres there, the prediction's transition and motion fit
     (raised to dt / tau), and its evidence's width s and weight w."""
 
@@ -138,9 +138,7 @@ class CooperativeLaneFilter(LaneFilter):
         return list(self._errors.areas)
 
     def correction(self, position: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-        area = self._errors.at(position)
-        area.predict(t)
-        return area.b, area.P
+        return self.corrections(position[None, :], t)[0]
 
     def leave(self, user: str) -> None:
         self._lanes.pop(user, None)

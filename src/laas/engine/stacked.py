@@ -81,11 +81,11 @@ def lanes_and_conditionals(
 
     held is False where the lane keeps no mass of the posterior; there the caller takes
     the area's own b and P."""
-    marginal = np.einsum("nh,nhl->nl", moments[:, :, 0], alpha)
+    marginal = np.matmul(moments[:, None, :, 0], alpha)[:, 0, :]
     marginal /= marginal.sum(axis=1, keepdims=True)
     lane = np.argmax(marginal, axis=1)
     g = alpha[np.arange(len(lane)), :, lane]  # (n, H)
-    sums = np.einsum("nh,nhk->nk", g, moments)  # (n, 6)
+    sums = np.matmul(g[:, None, :], moments)[:, 0, :]  # (n, 6)
     held = sums[:, 0] > 0.0
     sums /= np.where(held, sums[:, 0], 1.0)[:, None]
     me, mn = sums[:, 1], sums[:, 2]

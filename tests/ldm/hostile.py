@@ -950,10 +950,16 @@ class HostileDeployment:
             announce_interval=0.3,
             max_age=self.timing["max_age"],
         )
+        self._provider_config = config
         self.provider = Provider(config, ECHO, self.echo, identity=self.identity).start(timeout=5)
-        self._stack.callback(self.provider.stop)
+        self._stack.callback(lambda: self.provider.stop())
         assert wait_for(lambda: self._listed(self.witness), 5), "echo never listed"
         assert wait_for(lambda: self._listed(self.attacker), 5), "the attacker saw no list"
+
+    def restart_provider(self) -> Provider:
+        """A new echo provider, same identity, new session key (after a kill or stop)."""
+        self.provider = Provider(self._provider_config, ECHO, self.echo, identity=self.identity)
+        return self.provider.start(timeout=5)
 
     def _recorder(self, recorder: _R) -> _R:
         recorder.start()

@@ -38,7 +38,6 @@ forwards the envelope bytes it received (the user core drops the tag first).
 
 from __future__ import annotations
 
-import hmac
 import json
 import logging
 import secrets
@@ -61,11 +60,19 @@ from ldm.core.admission import (
     Limits,
     SessionKeys,
     request_like,
+    tag_secret,
     tagged,
 )
-from ldm.core.state import Pseudonym, Route, ServiceEntry, SessionState, new_pseudonym
+from ldm.core.state import (
+    Pseudonym,
+    Route,
+    ServiceEntry,
+    SessionSecret,
+    SessionState,
+    new_pseudonym,
+)
 from ldm.ops.hops import Hops
-from ldm.security.crypto import KeyPair, input_tag
+from ldm.security.crypto import KeyPair
 from ldm.security.identity import SigningKey, verify
 from ldm.security.trust import Trust
 from ldm.transport.intake import FairQueue
@@ -93,6 +100,7 @@ log = logging.getLogger(__name__)
 _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
+_MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
 _TOKEN = topics.TOKEN_PATTERN
 _ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
     Announcement | Withdrawal
@@ -391,8 +399,7 @@ class Core(Worker[Event]):
                         now, cfg.rate, cfg.burst
                     )
                 if verified:
-                    own, envelope = self._owned(known, client, service, msg.payload, now)
-                    secret = known.secret if envelope is not None else None
+                    own, envelope, secret = self._owned(known, client, service, msg.payload, now)
                 else:
                     own = True
                 charge = "own" if own else "other"
@@ -423,30 +430,32 @@ class Core(Worker[Event]):
 
     def _owned(
         self, known: SessionKeys, client: str, service: str, payload: bytes, now: float
-    ) -> tuple[bool, Envelope | None]:
+    ) -> tuple[bool, Envelope | None, bytes | None]:
         """Whether `payload` is its session's input, and new: tagged with the session's
         secret (under any key: a new key after a rotation is the session's too), fresh
         (``max_age``), and not a copy of one taken in the last ``max_age`` (an
         eavesdropper's replay on a broker without ACL). A session without a secret has
         nothing to check beyond its key (`SessionKeys.claims`). With it, the envelope
-        decoded and its tag checked (None when there is no secret or it is not its own)."""
-        if known.secret is None:
-            return True, None
-        env = tagged(known.secret, payload)
-        if env is None:
-            return False, None
+        decoded and the secret its tag was checked with (None when there is no secret
+        or it is not its own)."""
+        if not known.secrets:
+            return True, None, None
+        found = tagged(known.secrets, payload)
+        if found is None:
+            return False, None, None
+        env, secret = found
         c, t = env.c, env.t
         cfg = self.config
         if not now - cfg.max_age <= t <= now + cfg.max_clock_skew:
-            return False, None
+            return False, None, None
         with self._guard:
             recent = self._recent
             while recent and next(iter(recent.values())) < now - cfg.max_age:
                 recent.popitem(last=False)
             if (client, service, c) in recent:
-                return False, None
+                return False, None, None
             recent[(client, service, c)] = now
-        return True, env
+        return True, env, secret
 
     def _limits_of(self, client: str, now: float) -> Limits:
         """The client's budgets, new (full) if it has none (hold ``_guard``)."""
@@ -673,10 +682,10 @@ class Core(Worker[Event]):
         and its secret, after each message that may have changed them."""
         session = self._sessions.get((client, service))
         known: SessionKeys | None = None
-        if session is not None and (session.current is not None or session.secret is not None):
+        if session is not None and (session.current is not None or session.secrets):
             current = [] if session.current is None else [session.current]
             keys = tuple((p.key.encode(), p.until) for p in (*current, *session.old))
-            known = SessionKeys(keys, session.secret)
+            known = SessionKeys(keys, tuple(s.value for s in session.secrets))
         if self._keys.get((client, service)) != known:  # only the worker writes it
             with self._guard:
                 if known is not None:
@@ -905,9 +914,9 @@ class Core(Worker[Event]):
             return
         cfg = self.config
         auth_key = None
-        if req.k is not None:  # the latest grant's secret is the session's
+        if req.k is not None:
             ours = KeyPair()
-            session.secret = ours.session_secret(req.k)
+            self._grant_secret(session, ours.session_secret(req.k), now)
             auth_key = ours.public
         grant = SessionGrant(
             service=svc.description,
@@ -925,6 +934,25 @@ class Core(Worker[Event]):
         self.stats.granted += 1
         session.last_grant = SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant)
         self._notify(client, session.last_grant)
+
+    @staticmethod
+    def _grant_secret(session: SessionState, secret: bytes, now: float) -> None:
+        """Add a grant's secret to the session's, keeping those before it.
+
+        On a broker without ACL anyone can send a well-formed request on a participant's
+        topic; had its secret replaced the session's, the participant's correctly tagged
+        input would be dropped until its request timed out (issue 25: one forged request
+        every 2 s left 22-26 % answered). So the secrets in use stay: at most
+        ``_MAX_SECRETS`` are kept, and the one dropped to make room is the oldest never
+        used by tagged input, else the least recently used. A forged request's secret is
+        used only by its forger's tagged input: see docs/security.md for what remains.
+        """
+        held = session.secrets
+        held.append(SessionSecret(secret, now))
+        if len(held) > _MAX_SECRETS:
+            unused = [s for s in held[:-1] if s.used == 0.0]
+            victim = unused[0] if unused else min(held[:-1], key=lambda s: s.used)
+            held.remove(victim)
 
     def _stale(self, env: Envelope) -> bool:
         if time.time() - env.t > self.config.max_age:
@@ -960,16 +988,7 @@ class Core(Worker[Event]):
             self.stats.answered_nosession += 1
             self._answer(charge, client, SessionNotice(kind="nosession", service=service, c=env.c))
             return True
-        if (
-            session.secret is not None
-            and session.secret is not checked
-            and (
-                env.m is None
-                or not hmac.compare_digest(
-                    env.m, input_tag(session.secret, env.c, env.t, env.k, env.d)
-                )
-            )
-        ):
+        if session.secrets and not self._authentic(session, env, checked):
             self.stats.dropped_unauthentic += 1
             return False
         svc = self._services.get(service)
@@ -1020,6 +1039,20 @@ class Core(Worker[Event]):
             return False
         self.stats.forwarded_in += 1
         return session.current is not before
+
+    @staticmethod
+    def _authentic(session: SessionState, env: Envelope, checked: bytes | None) -> bool:
+        """Whether `env` is tagged with one of the session's secrets (`checked`: the one
+        intake checked it with, taken as it is while the session still holds it); the
+        secret is then marked used, which keeps it when a new grant comes."""
+        held = [s.value for s in session.secrets]
+        secret = checked if checked is not None and checked in held else tag_secret(env, held)
+        if secret is None:
+            return False
+        for s in session.secrets:
+            if s.value is secret or s.value == secret:
+                s.used = time.time()
+        return True
 
     def _pseudonym_for(
         self, session: SessionState, key: str, service_key: str, now: float

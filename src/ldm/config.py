@@ -316,8 +316,15 @@ class ProviderConfig(_Settings):
     description and announcements; None: a new identity each start."""
     endorsement: str | None = Field(default=None, pattern=r"^[A-Za-z0-9+/=]{88}$")
     """A trust anchor's endorsement of the identity (`ldm keys endorse`)."""
+    cluster: str | None = None
+    """The name of the core of the provider's cluster, which every announcement is
+    signed for (a copy replayed on another cluster is refused there). None: taken from
+    the cluster's retained service list (signed by ``core_key``, when that is set)."""
+    core_key: str | None = Field(default=None, pattern=_B64_KEY)
+    """The cluster core's Ed25519 public key: only its list names the cluster."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
+    _check_cluster = field_validator("cluster")(lambda v: None if v is None else _name(v))
 
     _check_broker = field_validator("broker", mode="before")(_url_as_broker)
 

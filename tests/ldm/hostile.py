@@ -113,6 +113,7 @@ _ECHO_ACCOUNT = (
     f"user {PROVIDER_USER}\n"
     "topic readwrite ldm/svc/echo/announce\n"
     "topic read ldm/svc/echo/in/#\n"
+    "topic read ldm/services\n"
     "topic write ldm/svc/echo/out/#\n"
 )
 

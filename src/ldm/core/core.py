@@ -152,7 +152,10 @@ class CoreStats:
     """Announcements, withdrawals and core statuses taken (valid, fresh), and this
     core's own service list seen back from the broker."""
     dropped_untrusted: int = 0
-    """Announcements not signed by a pinned or endorsed identity (with trust set)."""
+    """Announcements not signed by a pinned or endorsed identity, or bound to no
+    cluster (with trust set)."""
+    dropped_elsewhere: int = 0
+    """Announcements signed for another cluster than the one they came from (replays)."""
     repaired_list: int = 0
     """Service lists on the cluster that were not this core's own, replaced by it."""
     dropped_unauthentic: int = 0
@@ -749,10 +752,11 @@ class Core(Worker[Event]):
         if ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        if not self._acceptable(ann):
+        if not self._bound(ann, self.name) or not self._acceptable(ann):
             return
         self.stats.control += 1
-        svc = ServiceEntry(ann.service, self.name, ann.t + self.config.service_ttl, ann.sig)
+        expires = ann.t + self.config.service_ttl
+        svc = ServiceEntry(ann.service, self.name, expires, ann.sig, ann.cluster)
         self._services[service] = svc
         self._announce_backbone(service, svc)
         self._publish_list()
@@ -773,6 +777,39 @@ class Core(Worker[Event]):
             and goodbye.issued == desc.issued
             and verify(goodbye.identity, goodbye.signed_text(), goodbye.sig)
         )
+
+    def _bound(self, ann: Announcement, cluster: str) -> bool:
+        """Whether `ann` was announced in `cluster` (this core's name for a local
+        announcement, its ``origin`` for a backbone copy), as its signed ``cluster``
+        says (else counted). An announcement signed for another cluster is a replay:
+        taken here, the service would look local and every input would go to a topic
+        no one serves. With trust set, an unbound announcement is refused as well."""
+        if ann.cluster == cluster:
+            return True
+        if ann.cluster is not None:
+            self.stats.dropped_elsewhere += 1
+            log.warning(
+                "%s: announcement of %s made for cluster %s, not %s, dropped (a replay)",
+                self.name,
+                ann.service.name,
+                ann.cluster,
+                cluster,
+                extra={"event": "announcement_elsewhere"},
+            )
+            return False
+        if self.trust.open:
+            return True
+        self.stats.dropped_untrusted += 1
+        log.warning(
+            "%s: announcement of %s names no cluster, dropped: the provider has not read "
+            "this cluster's service list (let it read ldm/services, or set "
+            "ProviderConfig.cluster to %r)",
+            self.name,
+            ann.service.name,
+            cluster,
+            extra={"event": "announcement_unbound"},
+        )
+        return False
 
     def _acceptable(self, ann: Announcement) -> bool:
         """Fresh, not from the future, and signed by a trusted identity (else counted).
@@ -809,7 +846,9 @@ class Core(Worker[Event]):
         if self.backbone is None:
             return
         stamp = svc.expires - self.config.service_ttl
-        ann = Announcement(service=svc.description, t=stamp, origin=self.name, sig=svc.sig)
+        ann = Announcement(
+            service=svc.description, t=stamp, origin=self.name, sig=svc.sig, cluster=svc.cluster
+        )
         self.backbone.publish(
             topics.bb_announce(service), ann.model_dump_json().encode(), qos=1, retain=True
         )
@@ -825,14 +864,15 @@ class Core(Worker[Event]):
         if ann.origin is None or ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        if not self._acceptable(ann):
+        if not self._bound(ann, ann.origin) or not self._acceptable(ann):
             return
         self.stats.control += 1
         current = self._services.get(service)
         if ann.origin == self.name or (current is not None and current.origin == self.name):
             return  # our own, back from the backbone; or a local provider wins over a remote one
         expires = ann.t + self.config.service_ttl
-        self._services[service] = ServiceEntry(ann.service, ann.origin, expires, ann.sig)
+        entry = ServiceEntry(ann.service, ann.origin, expires, ann.sig, ann.cluster)
+        self._services[service] = entry
         self._publish_list()
 
     def _remove_service(self, service: str) -> None:
@@ -857,7 +897,9 @@ class Core(Worker[Event]):
         if services == self._published_list:
             return
         self._published_list = services
-        listing = ServiceList(t=time.time(), services=services, core=self.identity.public)
+        listing = ServiceList(
+            t=time.time(), services=services, core=self.identity.public, cluster=self.name
+        )
         listing = listing.model_copy(update={"sig": self.identity.sign(listing.signed_text())})
         self._list_payload = listing.model_dump_json().encode()
         self.cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)

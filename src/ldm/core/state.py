@@ -30,6 +30,7 @@ class ServiceEntry:
     origin: str
     expires: float
     sig: str | None = None  # the announcement's signature, passed on to the backbone
+    cluster: str | None = None  # the cluster the signature binds it to, passed on too
 
 
 @dataclass(slots=True)

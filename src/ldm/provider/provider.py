@@ -36,12 +36,19 @@ from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
 from ldm.ops.hops import Hops
 from ldm.security.crypto import KeyPair, SessionCipher, aad
-from ldm.security.identity import SigningKey
+from ldm.security.identity import SigningKey, verify
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
 from ldm.wire.batch import Outbox
-from ldm.wire.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
+from ldm.wire.messages import (
+    Announcement,
+    Envelope,
+    ServiceDescription,
+    ServiceList,
+    ServiceSpec,
+    Withdrawal,
+)
 
 __all__ = ["BatchHandler", "Handler", "Provider", "ProviderStats", "Request"]
 
@@ -183,6 +190,11 @@ class Provider(Worker[Event]):
         self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
         self._batch_topic = topics.provider_input_batch(spec.name)
         self.transport.subscribe(self._batch_topic, qos)
+        self.cluster = config.cluster
+        """The core's name every announcement is signed for (`Announcement.cluster`);
+        None until the cluster's service list names it."""
+        if self.cluster is None:
+            self.transport.subscribe(topics.SERVICES, 1)
 
     @classmethod
     def create(
@@ -243,6 +255,9 @@ class Provider(Worker[Event]):
     def sink(self, item: Event) -> None:
         """The transport's sink (paho's thread): a batch is cut into its envelopes, each
         queued as the single message it stands for; a malformed line is counted."""
+        if isinstance(item, Message) and item.topic == topics.SERVICES:
+            self._service_list(item.payload)
+            return
         if isinstance(item, Message) and item.topic == self._batch_topic:
             entries, bad = batch.decode(item.payload)
             if bad:
@@ -253,6 +268,25 @@ class Provider(Worker[Event]):
                 self._take(Message(topic, envelope, item.qos, False, item.source))
             return
         self._take(item)
+
+    def _service_list(self, payload: bytes) -> None:
+        """Learn the cluster's name from its core's list (paho's thread): signed by the
+        pinned ``core_key`` if set, else the latest list that names one. A new name is
+        announced at the next tick."""
+        if not payload or len(payload) > self.config.max_payload * 16:
+            return
+        try:
+            listing = ServiceList.model_validate_json(payload)
+        except ValidationError:
+            return
+        key = self.config.core_key
+        if listing.cluster is None or (
+            key is not None and not verify(key, listing.signed_text(), listing.sig)
+        ):
+            return
+        if listing.cluster != self.cluster:
+            self.cluster = listing.cluster
+            self._next_announce = 0.0
 
     def _take(self, item: Event) -> None:
         if self.hops is not None and isinstance(item, Message):
@@ -272,7 +306,7 @@ class Provider(Worker[Event]):
             if self._batch_handler is None:
                 for item in items:
                     if isinstance(item, Connected):
-                        self._announce(time.time())
+                        self._connected(time.time())
                     else:
                         self._input(item)
                 return
@@ -281,7 +315,7 @@ class Provider(Worker[Event]):
                 if isinstance(item, Connected):
                     self._inputs(run)
                     run = []
-                    self._announce(time.time())
+                    self._connected(time.time())
                 else:
                     run.append(item)
             self._inputs(run)
@@ -293,9 +327,17 @@ class Provider(Worker[Event]):
         if now >= self._next_announce and self.transport.connected:
             self._announce(now)
 
+    def _connected(self, now: float) -> None:
+        """Announce on (re)connecting; not knowing the cluster yet, wait up to a second
+        for its retained list first (it names the cluster: `_service_list`)."""
+        if self.cluster is None:
+            self._next_announce = now + min(1.0, self.config.announce_interval)
+        else:
+            self._announce(now)
+
     def _announce(self, now: float) -> None:
         self._next_announce = now + self.config.announce_interval
-        ann = Announcement(service=self.description, t=now)
+        ann = Announcement(service=self.description, t=now, cluster=self.cluster)
         ann = ann.model_copy(update={"sig": self.identity.sign(ann.signed_text())})
         self.transport.publish(
             topics.announce(self.name), ann.model_dump_json().encode(), qos=1, retain=True

@@ -190,14 +190,19 @@ class Session:
         self.rotations += 1
         return True
 
-    def regrant(self, grant: SessionGrant, secret: bytes | None) -> None:
+    def regrant(self, grant: SessionGrant, secret: bytes | None) -> bool:
         """The core granted the session again: new key, re-send what is still waiting.
 
         Each re-sent input gets a new correlation id: the old one travelled under the
         old pseudonym, and the same id under the new one would link the two. The key
         stays if it changed within the last ``rekey_interval`` and the service's key is
-        the same (the core would refuse a new one).
+        the same (the core would refuse a new one). A grant of the same service
+        identity with an older description (``issued``) changes nothing (False): the
+        session never goes back to an older key.
         """
+        held = self.grant.service
+        if grant.service.identity == held.identity and grant.service.issued < held.issued:
+            return False
         changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
         self._secret = secret
@@ -214,6 +219,7 @@ class Session:
         for c, pending in resend:
             pending.keys = self._keys
             self._send(c, pending)
+        return True
 
     def settle(self, env: Envelope) -> bool:
         """Settle the request ``env`` answers; False (and nothing changes) if it is not
@@ -536,8 +542,12 @@ class Participant(Worker[Event]):
                 secret = key.session_secret(notice.grant.auth_key)
             if opening is not None:
                 _settle(opening, (notice.grant, secret))  # a duplicate (QoS 1) finds it done
-            elif session is not None and self._reopened(notice.service, notice.c):
-                session.regrant(notice.grant, secret)
+            elif (
+                session is not None
+                and self._reopened(notice.service, notice.c)
+                and not session.regrant(notice.grant, secret)
+            ):
+                self.ignored += 1  # an older description: the session keeps its key
         elif notice.kind == "refused":
             error = ServiceNotFound(notice.error or f"service {notice.service!r} refused")
             with self._lock:

@@ -205,6 +205,9 @@ class Core(Worker[Event]):
         self.hops: Hops | None = None
         """Set to note when each input passes this core (`ldm.hops`; `laas bench`)."""
         self._services: dict[str, ServiceEntry] = {}
+        self._latest: dict[str, tuple[str | None, float, float]] = {}
+        """Service -> (identity, issued, t) of the last announcement taken, also for a
+        while after it is gone: an older one is refused (`_forward_only`)."""
         self._sessions: dict[tuple[str, str], SessionState] = {}
         self._pseudonyms: dict[str, SessionState] = {}
         self._routes: dict[str, Route] = {}
@@ -754,6 +757,8 @@ class Core(Worker[Event]):
             return
         if not self._bound(ann, self.name) or not self._acceptable(ann):
             return
+        if not self._forward_only(ann):
+            return
         self.stats.control += 1
         expires = ann.t + self.config.service_ttl
         svc = ServiceEntry(ann.service, self.name, expires, ann.sig, ann.cluster)
@@ -811,6 +816,33 @@ class Core(Worker[Event]):
         )
         return False
 
+    def _forward_only(self, ann: Announcement) -> bool:
+        """Whether `ann` is not older than the last announcement taken for its service
+        under the same identity (else counted as stale).
+
+        Order: (``issued``, ``t``). A replayed announcement of a withdrawn or replaced
+        key is genuine and fresh (within ``service_ttl``), so only its order gives it
+        away: taken, it put a dead provider's key back in the list (issue 25). The same
+        announcement again is taken while its service is listed (a redelivery), never
+        once it is gone. What was last taken is kept ``service_ttl`` after it was made,
+        after which a replay of it is stale anyway (`_expire_services`).
+        """
+        desc = ann.service
+        last = self._latest.get(desc.name)
+        if last is not None and last[0] == desc.identity:
+            new, old = (desc.issued, ann.t), (last[1], last[2])
+            if new < old or (new == old and desc.name not in self._services):
+                self.stats.dropped_stale += 1
+                log.info(
+                    "%s: an older announcement of %s dropped (a replay)",
+                    self.name,
+                    desc.name,
+                    extra={"event": "announcement_older"},
+                )
+                return False
+        self._latest[desc.name] = (desc.identity, desc.issued, ann.t)
+        return True
+
     def _acceptable(self, ann: Announcement) -> bool:
         """Fresh, not from the future, and signed by a trusted identity (else counted).
 
@@ -866,6 +898,8 @@ class Core(Worker[Event]):
             return
         if not self._bound(ann, ann.origin) or not self._acceptable(ann):
             return
+        if not self._forward_only(ann):
+            return
         self.stats.control += 1
         current = self._services.get(service)
         if ann.origin == self.name or (current is not None and current.origin == self.name):
@@ -891,6 +925,10 @@ class Core(Worker[Event]):
     def _expire_services(self, now: float) -> None:
         for name in [n for n, s in self._services.items() if s.expires <= now]:
             self._remove_service(name)
+        ttl = self.config.service_ttl
+        for name in [n for n, last in self._latest.items() if last[2] + ttl <= now]:
+            if name not in self._services:
+                del self._latest[name]
 
     def _publish_list(self) -> None:
         services = sorted((s.description for s in self._services.values()), key=lambda d: d.name)

@@ -215,6 +215,7 @@ class Core(Worker[Event]):
         self._published_list: list[ServiceDescription] | None = None
         self._list_payload = b""  # the retained list as this core last published it
         self._repairs = Bucket(_REPAIR_RATE, 0.0)
+        self._repair_owed = False  # a foreign list was seen and not yet replaced (`_repair`)
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
         self.trust = Trust(config.service_keys, config.anchors)
@@ -521,6 +522,7 @@ class Core(Worker[Event]):
             )
 
     def tick(self, now: float) -> None:
+        self._repair(now)
         self._expire_services(now)
         self._expire_sessions(now)
         for pseudonym, route in list(self._routes.items()):
@@ -946,14 +948,25 @@ class Core(Worker[Event]):
         """The retained list on the cluster must be this core's: if not, publish it again.
 
         Anyone who can write ``ldm/services`` (a broker without ACL) could replace it;
-        the core sees the change one broker round trip later and puts its own back, so
-        a tampered list stands for milliseconds, not until the next change.
+        the core sees the change one broker round trip later and puts its own back.
+        Repairs are bounded (``_REPAIR_RATE`` a second, so two cores on one broker
+        cannot loop fast), and one the bucket cannot pay for now is owed, not skipped:
+        `_repair` pays it from ``tick`` as soon as the bucket allows, so the last list
+        of any burst is repaired within 1 / ``_REPAIR_RATE`` s plus a tick.
         """
         if payload == self._list_payload or self._published_list is None:
+            if payload == self._list_payload:
+                self._repair_owed = False  # ours is back: nothing after it is owed
             self.stats.control += 1  # our own, or before we published (it follows)
             return
         self.stats.repaired_list += 1
-        if self._repairs.take(time.time(), _REPAIR_RATE, _REPAIR_RATE):
+        self._repair_owed = True
+        self._repair(time.time())
+
+    def _repair(self, now: float) -> None:
+        """Publish this core's list again if a repair is owed and the bucket pays."""
+        if self._repair_owed and self._repairs.take(now, _REPAIR_RATE, _REPAIR_RATE):
+            self._repair_owed = False
             log.warning(
                 "%s: the service list on the cluster was not ours; repaired",
                 self.name,

@@ -348,6 +348,9 @@ class ParticipantConfig(_Settings):
     signed act; unsigned or forged ones change nothing."""
     notice_window: float = Field(default=30.0, gt=0)
     """A signed notice older (or further ahead) than this is ignored as a replay."""
+    max_list: int = Field(default=512 * 1024, ge=1024)
+    """A service list longer than this (bytes) is ignored unread: a forged list must
+    not cost a participant more than reading this much."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
     _check_keys = field_validator("service_keys")(_keys)

@@ -260,3 +260,28 @@ def test_an_older_grant_never_replaces_a_newer_key(d: HostileDeployment) -> None
 
 def _list_services(payload: bytes) -> list[str]:
     return [s.name for s in ServiceList.model_validate_json(payload).services]
+
+
+def test_a_regrant_soon_after_a_rotation_is_not_refused() -> None:
+    """The participant rotates, sends its first input under the new key 0.8 s later,
+    and its session is granted again 0.3 s after that: before the fix it counted
+    rekey_interval (1 s) from the rotation, made a new key at the regrant, and the
+    core, counting from that first input, refused it (``rate_limited``)."""
+    need_mosquitto()
+    with HostileDeployment("open", core={"rotation_period": 4.0}) as d:
+        alice = d.participant("alice")
+        d.wait_listed(alice)
+        session = alice.open("echo")
+        assert session.grant.rekey_interval == 1.0
+        answers = [session.request({"i": 0}, timeout=DEADLINE)]
+        time.sleep(1.4)
+        assert session.rotate(time.time())
+        time.sleep(0.8)
+        answers.append(session.request({"i": 1}, timeout=DEADLINE))  # the new key's first
+        time.sleep(0.3)
+        before = session.grant.session
+        alice.reopen(session)
+        assert wait_for(lambda: session.grant.session != before, 2), "no regrant"
+        answers += [session.request({"i": i}, timeout=DEADLINE) for i in range(2, 6)]
+        assert answers == [{"echo": {"i": i}} for i in range(6)]
+        assert d.user_core.stats.rejected_rekey == 0

@@ -37,7 +37,7 @@ from ldm.errors import (
     TrustError,
 )
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
-from ldm.security.identity import verify
+from ldm.security.identity import canonical, verify
 from ldm.security.trust import Trust
 from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
 from ldm.transport.worker import Worker
@@ -57,10 +57,28 @@ Payload = dict[str, Any]
 
 
 _MAX_REQUESTS = 64  # session requests awaiting their grant, remembered at once
+_REKEY_MARGIN = 0.2  # s: an input's trip to the core, beyond rekey_interval (`Session.rotate`)
 
 
 def _token() -> str:
     return secrets.token_urlsafe(9)
+
+
+def _signed(key: str, payload: bytes) -> bool:
+    """Whether a service list's JSON carries `key`'s signature, checked on the parsed
+    JSON before any validation: the core signs ``canonical("ldm-list/1", fields)`` of
+    the same fields it publishes (`ServiceList.signed_text`)."""
+    try:
+        body = json.loads(payload)
+    except (ValueError, RecursionError):
+        return False
+    if not isinstance(body, dict):
+        return False
+    sig = body.pop("sig", None)
+    try:
+        return isinstance(sig, str) and verify(key, canonical("ldm-list/1", body), sig)
+    except ValueError:  # NaN or infinities: never signed
+        return False
 
 
 def _settle(future: Future[Any], result: Any = None, error: BaseException | None = None) -> None:
@@ -113,6 +131,8 @@ class Session:
         self._lock = threading.Lock()
         self._secret = secret  # shared with the core by the grant; tags every input
         self._rotated_at = time.time()
+        self._sent_keys: _Keys | None = None  # the latest key input went out under
+        self._first_sent = 0.0  # when input first went out under it: the core's clock
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
 
@@ -161,6 +181,10 @@ class Session:
     def _send(self, c: str, pending: _Pending) -> None:
         keys = pending.keys
         pending.sent = time.time()
+        if keys is not self._sent_keys:
+            with self._lock:
+                if keys is not self._sent_keys:
+                    self._sent_keys, self._first_sent = keys, pending.sent
         pending.disconnects = self._participant.disconnects
         sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
         k, secret = keys.pair.public, self._secret
@@ -181,9 +205,15 @@ class Session:
         """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
 
         The core refuses a session's new key sooner than that, so a rotation more often,
-        asked by a replayed or forged notice, would only lock the session out.
+        asked by a replayed or forged notice, would only lock the session out. Both
+        count from the first input under the current key, the core from its arrival:
+        the participant waits ``_REKEY_MARGIN`` longer for that input's trip (counted
+        from the rotation, the participant ran ahead of the core by the time until its
+        next input, and the core refused the new key: issue 25).
         """
         if now - self._rotated_at < self.grant.rekey_interval:
+            return False
+        if now - self._first_sent < self.grant.rekey_interval + _REKEY_MARGIN:
             return False
         self._keys = _Keys.new(self.grant.service)
         self._rotated_at = now
@@ -504,8 +534,9 @@ class Participant(Worker[Event]):
         )
 
     def _service_list(self, payload: bytes) -> None:
-        """Take a service list: signed by the pinned core (if any), never older than the
-        last one, and only the services the participant trusts.
+        """Take a service list: at most ``max_list`` bytes, signed by the pinned core
+        (if any; checked on the JSON before the list is validated), never older than
+        the last one, and only the services the participant trusts.
 
         An empty payload is the core clearing its list (it stopped): no services, and
         no session is touched.
@@ -514,10 +545,13 @@ class Participant(Worker[Event]):
             self._services = []
             self._have_list.set()
             return
-        listing = ServiceList.model_validate_json(payload)
         key = self.config.core_key
+        if len(payload) > self.config.max_list or (key is not None and not _signed(key, payload)):
+            self.ignored += 1  # checked before the list is validated: a forgery costs little
+            return
+        listing = ServiceList.model_validate_json(payload)
         if key is not None:
-            if not verify(key, listing.signed_text(), listing.sig) or listing.t < self._list_t:
+            if listing.t < self._list_t:
                 self.ignored += 1
                 return
             self._list_t = listing.t

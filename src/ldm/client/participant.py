@@ -57,7 +57,6 @@ Payload = dict[str, Any]
 
 
 _MAX_REQUESTS = 64  # session requests awaiting their grant, remembered at once
-_REKEY_MARGIN = 0.2  # s: an input's trip to the core, beyond rekey_interval (`Session.rotate`)
 
 
 def _token() -> str:
@@ -206,14 +205,13 @@ class Session:
 
         The core refuses a session's new key sooner than that, so a rotation more often,
         asked by a replayed or forged notice, would only lock the session out. Both
-        count from the first input under the current key, the core from its arrival:
-        the participant waits ``_REKEY_MARGIN`` longer for that input's trip (counted
-        from the rotation, the participant ran ahead of the core by the time until its
-        next input, and the core refused the new key: issue 25).
+        count from the first input under the current key, the core from its arrival
+        (counted from the rotation instead, the participant ran ahead of the core by
+        the time until its next input, and the core refused the new key: issue 25).
         """
         if now - self._rotated_at < self.grant.rekey_interval:
             return False
-        if now - self._first_sent < self.grant.rekey_interval + _REKEY_MARGIN:
+        if now - self._first_sent < self.grant.rekey_interval:
             return False
         self._keys = _Keys.new(self.grant.service)
         self._rotated_at = now

@@ -101,6 +101,10 @@ _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
+_REKEY_SLACK = 0.1
+"""A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
+from sending its first input under the current key, the core from its arrival, and
+the two trips may differ (`Session.rotate`)."""
 _TOKEN = topics.TOKEN_PATTERN
 _ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
     Announcement | Withdrawal
@@ -1165,7 +1169,7 @@ class Core(Worker[Event]):
         if (
             current is not None
             and current.service_key == service_key
-            and now - current.created < self.config.rekey_interval
+            and now - current.created < self.config.rekey_interval * (1.0 - _REKEY_SLACK)
         ):
             return None
         fresh = Pseudonym(new_pseudonym(), key, now, service_key)

@@ -101,6 +101,7 @@ _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
+_CLEAR_RATE = 1000.0  # clearings a second of participant topics that are no session's
 _REKEY_SLACK = 0.1
 """A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
 from sending its first input under the current key, the core from its arrival, and
@@ -203,6 +204,7 @@ class Core(Worker[Event]):
         """(client, service, c) of input charged to its session in the last ``max_age``,
         oldest first: a replay of one is not the session's (intake, under ``_guard``)."""
         self._next_sweep = time.time() + config.retain_sweep
+        self._clears = Bucket(_CLEAR_RATE, time.time())  # `_clear`, under ``_guard``
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
@@ -392,6 +394,8 @@ class Core(Worker[Event]):
         service = topic.service if topic.kind == "participant_input" else ""
         cfg = self.config
         now = time.time()
+        if topic.kind == "participant_up" or (service and service not in self._services):
+            self._clear(msg.topic, now)
         charge: Charge = "other"
         verified = True  # whether `charge` is known to be right
         envelope: Envelope | None = None  # decoded and its tag checked with `secret`
@@ -438,6 +442,24 @@ class Core(Worker[Event]):
             )
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
+
+    def _clear(self, topic: str, now: float) -> None:
+        """Clear what may be retained on `topic`, a participant's topic that is no
+        session's (paho's thread), at once.
+
+        A live message does not show the retain flag, so retained junk on topics of a
+        participant's own (one participant made the broker hold 120 MB, which Mosquitto
+        never gives back: issue 25) would wait for the next sweep (``retain_sweep``).
+        The session topics are few per participant and swept; any other topic is
+        cleared as its message arrives, within ``_CLEAR_RATE`` a second, beyond which
+        the next sweep comes within a second.
+        """
+        with self._guard:
+            cleared = self._clears.take(now, _CLEAR_RATE, _CLEAR_RATE)
+            if not cleared:
+                self._next_sweep = min(self._next_sweep, now + 1.0)
+        if cleared:
+            self.cluster.publish(topic, b"", qos=0, retain=True)
 
     def _owned(
         self, known: SessionKeys, client: str, service: str, payload: bytes, now: float

@@ -17,7 +17,7 @@ import pytest
 from ldm import Participant
 from ldm.local.brokers import wait_for
 from ldm.local.pytest_plugin import need_mosquitto
-from ldm.wire.messages import Announcement, ServiceList, SessionRequest
+from ldm.wire.messages import Announcement, SessionRequest
 
 from .hostile import (
     PROBE,
@@ -123,6 +123,10 @@ def test_a_replayed_genuine_announcement_diverts_nothing(d: HostileDeployment) -
     origins = {(s.name, e.origin) for s in [d.user_core] for e in s._services.values()}
     assert origins == {("user-edge", "svc-cluster")}, origins
     assert_served(load, window)
+    cleared = [m for m in d.backbone_witness.messages("ldm/bb/announce/echo") if not m.payload]
+    assert cleared == [], "the service's backbone announcement was cleared"
+    payload = read_retained(backbone, "ldm/bb/announce/echo")
+    assert payload and Announcement.model_validate_json(payload).origin == "svc-cluster"
 
 
 def test_an_older_announcement_never_comes_back() -> None:
@@ -256,10 +260,6 @@ def test_an_older_grant_never_replaces_a_newer_key(d: HostileDeployment) -> None
     session.regrant(older, None)
     assert session.service.public_key == newer.service.public_key
     assert session.request({"still": "here"}, timeout=DEADLINE) == {"echo": {"still": "here"}}
-
-
-def _list_services(payload: bytes) -> list[str]:
-    return [s.name for s in ServiceList.model_validate_json(payload).services]
 
 
 def test_a_regrant_soon_after_a_rotation_is_not_refused() -> None:

@@ -348,6 +348,11 @@ class ParticipantConfig(_Settings):
     signed act; unsigned or forged ones change nothing."""
     notice_window: float = Field(default=30.0, gt=0)
     """A signed notice older (or further ahead) than this is ignored as a replay."""
+    unreachable_after: float = Field(default=1.5, gt=0)
+    """With no broker node connected for this long, every request waiting, and each new
+    one, fails at once with `ConnectError` saying so (a cluster that lost its quorum
+    refuses every connection), instead of timing out after 2 x max_age + 1 s. 1.5 s
+    and a tick (0.25 s): the error comes within 2 s of the loss."""
     max_list: int = Field(default=512 * 1024, ge=1024)
     """A service list longer than this (bytes) is ignored unread: a forged list must
     not cost a participant more than reading this much."""

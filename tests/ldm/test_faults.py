@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from ldm import Core, LdmError
+from ldm import ConnectError, Core, LdmError, Participant
 from ldm.client.participant import Session
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
@@ -125,3 +125,34 @@ def test_a_publish_as_the_transport_reconnects_waits_for_the_connack(mqtt_broker
     finally:
         sender.stop()
         receiver.stop()
+
+
+NO_BROKER_ERROR = 2.0
+"""With no broker node to take its input, a participant's request fails with a clear
+error within 2 s (issue 25; before: RequestTimeout after 2 x max_age + 1 = 5 s)."""
+
+
+def test_a_participant_without_a_broker_fails_its_requests_within_2_s(deployment) -> None:
+    """The user broker goes away (as a NATS cluster that lost its quorum refuses every
+    connection): the request in flight and every new one fail with ConnectError naming
+    the problem within NO_BROKER_ERROR, not by timing out; with the broker back, the
+    session works again."""
+    d = deployment
+    p = Participant.create(d.user.url, client_id="una-car-9", max_age=FAST["max_age"], data_qos=1)
+    p.start(timeout=5)
+    d.participants.append(p)
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.user.stop()
+    lost = time.monotonic()
+    in_flight = session.submit({"during": 1})  # QoS 1: held for the reconnect
+    with pytest.raises(ConnectError, match="no broker node reachable"):
+        in_flight.result(NO_BROKER_ERROR + 3)
+    assert time.monotonic() - lost <= NO_BROKER_ERROR
+    started = time.monotonic()
+    with pytest.raises(ConnectError, match="send again once"):
+        session.submit({"later": 1}).result(1)
+    assert time.monotonic() - started < 0.5, "a new request waited instead of failing at once"
+    d.user.start()
+    works_again(session)

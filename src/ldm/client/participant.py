@@ -180,6 +180,10 @@ class Session:
     def _send(self, c: str, pending: _Pending) -> None:
         keys = pending.keys
         pending.sent = time.time()
+        unreachable = self._participant.unreachable(pending.sent)
+        if unreachable is not None:
+            self.fail(c, unreachable)
+            return
         if keys is not self._sent_keys:
             with self._lock:
                 if keys is not self._sent_keys:
@@ -620,8 +624,37 @@ class Participant(Worker[Event]):
             ):
                 self.reopen(session)
 
+    def unreachable(self, now: float) -> ConnectError | None:
+        """The error for every request while no broker node has taken the connection,
+        or acknowledged a QoS 1 message, for ``unreachable_after`` seconds (None while
+        it is not so)."""
+        limit = self.config.unreachable_after
+        down = self.transport.down_since
+        if down is not None and now - down >= limit:
+            return ConnectError(
+                f"no broker node reachable for {now - down:.1f} s ({self.transport.problem}; "
+                f"tried {self.config.broker.url}): nothing can be sent or answered now, so "
+                "the request failed rather than wait (it may or may not have reached the "
+                "service). A cluster that lost its quorum refuses every connection: send "
+                "again once `transport.connected` is true"
+            )
+        waited = self.transport.unacked_for(now)
+        if waited >= limit:
+            return ConnectError(
+                f"the broker at {self.transport.address[0]}:{self.transport.address[1]} has "
+                f"not acknowledged a message for {waited:.1f} s: it takes the connection but "
+                "cannot store input (a NATS cluster that lost its JetStream quorum does "
+                "this), so the request failed rather than wait. Send again once the broker "
+                "acknowledges again"
+            )
+        return None
+
     def tick(self, now: float) -> None:
         limit = 2 * self.config.max_age + 1.0
+        unreachable = self.unreachable(now)
+        if unreachable is not None:
+            for session in list(self._sessions.values()):
+                session.fail_all(unreachable)
         for session in list(self._sessions.values()):
             session.expire(now, limit, self.transport.disconnects)
             if session.service.name in self._reopening:

@@ -97,6 +97,7 @@ CORE_OUTCOMES: dict[str, tuple[str, str]] = {
     "dropped_invalid": ("dropped", "invalid"),
     "dropped_overload": ("dropped", "overload"),
     "dropped_untrusted": ("dropped", "untrusted"),
+    "dropped_elsewhere": ("dropped", "elsewhere"),
     "dropped_unauthentic": ("dropped", "unauthentic"),
     "dropped_retained": ("dropped", "retained"),
 }

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from ldm import ConnectError, Core, LdmError, Participant
+from ldm import ConnectError, Core, LdmError, Participant, RequestRejected
 from ldm.client.participant import Session
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
@@ -155,4 +155,34 @@ def test_a_participant_without_a_broker_fails_its_requests_within_2_s(deployment
         session.submit({"later": 1}).result(1)
     assert time.monotonic() - started < 0.5, "a new request waited instead of failing at once"
     d.user.start()
+    works_again(session)
+
+
+def test_input_for_a_service_behind_a_lost_backbone_is_refused_at_once(deployment) -> None:
+    """The backbone broker goes away: the user core refuses input for the service of
+    the other cluster with ``unavailable`` (a clear error within NO_BROKER_ERROR) instead
+    of dropping it (at QoS 0 the transport cannot hold it: before, each request timed
+    out after 5 s); with the backbone back, the session works again."""
+    d = deployment
+    p = d.participant("vera-car-3")
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.backbone.stop()
+    assert wait_for(lambda: not d.user_core.backbone.connected, 5)
+    waits: list[float] = []
+    futures = []
+    for i in range(8):
+        at = time.monotonic()
+        future = session.submit({"during": i})
+        future.add_done_callback(lambda _f, at=at: waits.append(time.monotonic() - at))
+        futures.append(future)
+        time.sleep(0.1)
+    for future in futures:
+        with pytest.raises(RequestRejected, match="backbone broker") as info:
+            future.result(NO_BROKER_ERROR + 3)
+        assert info.value.reason == "unavailable"
+    assert max(waits) <= NO_BROKER_ERROR, waits
+    assert d.user_core.stats.rejected_unavailable == len(futures)
+    d.backbone.start()
     works_again(session)

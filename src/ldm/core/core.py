@@ -101,6 +101,9 @@ _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
+_UNREACHABLE = 1.0
+"""s: a backbone broker unreachable (or not acknowledging) this long fails input for
+other clusters' services at once (``unavailable``), rather than after its timeout."""
 _CLEAR_RATE = 1000.0  # clearings a second of participant topics that are no session's
 _REKEY_SLACK = 0.1
 """A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
@@ -146,6 +149,9 @@ class CoreStats:
     rejected_clock: int = 0
     rejected_rekey: int = 0
     """Input under a new ephemeral key too soon after the last one (answered ``rate_limited``)."""
+    rejected_unavailable: int = 0
+    """Input for another cluster's service while the backbone broker has been unreachable,
+    or has not acknowledged, for ``_UNREACHABLE`` s (answered ``unavailable``)."""
     granted: int = 0
     answered_nosession: int = 0
     """Input or requests for a session the core does not hold (answered ``nosession``)."""
@@ -1145,6 +1151,11 @@ class Core(Worker[Event]):
                 qos,
             )
         elif self.backbone is not None:
+            problem = self._backbone_problem(now, service)
+            if problem is not None:
+                self.stats.rejected_unavailable += 1
+                self._reject(charge, client, service, "unavailable", problem, c=env.c)
+                return session.current is not before
             self._outbox.add(
                 self.backbone,
                 topics.bb_input_batch(svc.origin, service, self.name),
@@ -1172,6 +1183,26 @@ class Core(Worker[Event]):
             if s.value is secret or s.value == secret:
                 s.used = time.time()
         return True
+
+    def _backbone_problem(self, now: float, service: str) -> str | None:
+        """Why input for `service`, on another cluster, cannot leave now: the backbone
+        broker is unreachable (at QoS 0, which the transport does not hold; at QoS 1/2
+        for ``_UNREACHABLE`` s), or has not acknowledged a QoS 1 message (a NATS cluster
+        without quorum) for ``_UNREACHABLE`` s. None when it can."""
+        backbone = self.backbone
+        if backbone is None:
+            return None
+        down = backbone.down_since
+        if down is not None and (self.config.data_qos == 0 or now - down >= _UNREACHABLE):
+            why = f"unreachable for {now - down:.1f} s ({backbone.problem})"
+        elif (waited := backbone.unacked_for(now)) >= _UNREACHABLE:
+            why = f"has not acknowledged a message for {waited:.1f} s"
+        else:
+            return None
+        return (
+            f"service {service!r} is in another cluster and this core's backbone broker "
+            f"{why}: nothing reaches it now; send again later"
+        )
 
     def _pseudonym_for(
         self, session: SessionState, key: str, service_key: str, now: float

@@ -92,6 +92,7 @@ CORE_OUTCOMES: dict[str, tuple[str, str]] = {
     "rejected_size": ("rejected", "too_large"),
     "rejected_clock": ("rejected", "clock"),
     "rejected_rekey": ("rejected", "rekey"),
+    "rejected_unavailable": ("rejected", "unavailable"),
     "dropped_stale": ("dropped", "stale"),
     "dropped_unroutable": ("dropped", "unroutable"),
     "dropped_invalid": ("dropped", "invalid"),

@@ -181,7 +181,7 @@ class SessionGrant(_Wire):
     two the participant derives the secret with which it tags its input (``m``)."""
 
 
-Rejection = Literal["invalid", "too_large", "rate_limited", "clock"]
+Rejection = Literal["invalid", "too_large", "rate_limited", "clock", "unavailable"]
 
 
 class SessionNotice(_Wire):

@@ -348,6 +348,12 @@ class ParticipantConfig(_Settings):
     signed act; unsigned or forged ones change nothing."""
     notice_window: float = Field(default=30.0, gt=0)
     """A signed notice older (or further ahead) than this is ignored as a replay."""
+    retry_after: float | None = Field(default=None, gt=0)
+    """Send an input again, unchanged, when no reply came this many seconds after it was
+    last sent, while it is younger than ``max_age`` (checked every 0.25 s); the provider
+    answers a retry with the reply it made (idempotent). None (default): no retries.
+    With data at QoS 0 on a broker cluster, 0.5 makes a lost input or reply cost one
+    retry instead of the request (docs/brokers.md)."""
     unreachable_after: float = Field(default=1.5, gt=0)
     """With no broker node connected for this long, every request waiting, and each new
     one, fails at once with `ConnectError` saying so (a cluster that lost its quorum

@@ -12,7 +12,9 @@ from ldm import ConnectError, Core, LdmError, Participant, RequestRejected
 from ldm.client.participant import Session
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
+from ldm.security.crypto import KeyPair, aad
 from ldm.transport.mqtt import Connected, Event, Message, Transport
+from ldm.wire.messages import Envelope
 
 from .deployment import FAST, deploy, echo_provider, has_service
 
@@ -186,3 +188,59 @@ def test_input_for_a_service_behind_a_lost_backbone_is_refused_at_once(deploymen
     assert d.user_core.stats.rejected_unavailable == len(futures)
     d.backbone.start()
     works_again(session)
+
+
+def test_a_retry_recovers_an_input_lost_in_a_failover(deployment) -> None:
+    """The service cluster's broker restarts while an input is on its way: the service
+    core cannot forward it (data at QoS 0 is not held), so it is lost. With
+    ``retry_after`` the participant sends it again, unchanged, and it is answered
+    within max_age (before: RequestTimeout after 5 s). A retry of an input answered
+    already is answered by the provider with the same reply, the handler not called
+    again."""
+    d = deployment
+    p = Participant.create(
+        d.user.url, client_id="wim-car-2", max_age=FAST["max_age"], retry_after=0.25
+    )
+    p.start(timeout=5)
+    d.participants.append(p)
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.service.stop()
+    assert wait_for(lambda: not d.service_core.cluster.connected, 5)
+    lost = session.submit({"lost": 1})
+    time.sleep(0.1)
+    d.service.start()
+    assert lost.result(FAST["max_age"] + 1) == {"echo": {"lost": 1}}
+    assert session.retries >= 1
+
+
+def test_the_provider_answers_a_retry_with_the_same_reply(deployment) -> None:
+    """The same input twice on the provider's topic (a retry, or a broker's duplicate):
+    the handler runs once and the same sealed reply goes out twice (before: the second
+    was dropped as a replay, and a lost reply stayed lost)."""
+    d = deployment
+    replies: list[Message] = []
+    spy = Transport(
+        BrokerSettings(url=d.service.url),
+        client_id="retry-spy",
+        sink=lambda e: replies.append(e) if isinstance(e, Message) else None,
+    )
+    for flt in ("ldm/svc/echo/out", "ldm/svc/echo/out/+"):
+        spy.subscribe(flt, 1)
+    spy.start(5)
+    try:
+        mine = KeyPair()
+        c, t = "retry-1", time.time()
+        sealed = mine.cipher(d.provider.key.public, initiator=True).seal(b'{"x":1}', aad(c, t))
+        envelope = Envelope(c=c, t=t, k=mine.public, d=sealed).encode()
+        handled = len(d.echo.requests)
+        for _ in range(2):
+            spy.publish("ldm/svc/echo/in/pseudo-retry", envelope, qos=1)
+            time.sleep(0.3)
+        assert wait_for(lambda: len(replies) >= 2, 3), f"{len(replies)} replies"
+        assert len(d.echo.requests) == handled + 1, "the handler ran twice"
+        assert d.provider.stats.answered_again == 1
+        assert len({m.payload.splitlines()[-1] for m in replies}) == 1  # the same reply
+    finally:
+        spy.stop()

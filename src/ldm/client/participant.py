@@ -111,6 +111,8 @@ class _Pending:
     plaintext: bytes
     sent: float
     disconnects: int = 0  # the transport's count when sent
+    envelope: Envelope | None = None  # as sent: a retry sends it again unchanged
+    tried: float = 0.0  # when it was last sent (or sent again)
 
 
 class Session:
@@ -134,6 +136,8 @@ class Session:
         self._first_sent = 0.0  # when input first went out under it: the core's clock
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
+        self.retries = 0
+        """Inputs sent again unanswered (`retry`; ``ParticipantConfig.retry_after``)."""
 
     @property
     def service(self) -> ServiceDescription:
@@ -193,6 +197,7 @@ class Session:
         k, secret = keys.pair.public, self._secret
         tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
         env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
+        pending.envelope, pending.tried = env, pending.sent
         if not self._participant.publish_input(self, env):
             self.fail(
                 c,
@@ -292,6 +297,27 @@ class Session:
             pending, self._pending = list(self._pending.values()), {}
         for p in pending:
             _settle(p.future, error=error)
+
+    def retry(self, now: float, after: float, max_age: float) -> None:
+        """Send again, unchanged (same correlation id, time, key and tag), each input
+        unanswered for `after` s since it was last sent, while every hop would still take
+        it (younger than `max_age` - `after`). The provider answers a correlation id it
+        answered already with the same reply (`ProviderStats.answered_again`), so an
+        input or reply lost on the way (a broker node that died with it, data at QoS 0)
+        costs one retry, not the request."""
+        with self._lock:
+            due = [
+                (p, p.envelope)
+                for p in self._pending.values()
+                if p.envelope is not None
+                and now - p.tried >= after
+                and now - p.sent + after < max_age
+            ]
+            for p, _ in due:
+                p.tried = now
+        for _, envelope in due:
+            if self._participant.publish_input(self, envelope):
+                self.retries += 1
 
     def expire(self, now: float, limit: float, disconnects: int) -> None:
         """Fail the requests older than `limit` s (RequestTimeout), and ask the
@@ -655,7 +681,10 @@ class Participant(Worker[Event]):
         if unreachable is not None:
             for session in list(self._sessions.values()):
                 session.fail_all(unreachable)
+        retry_after = self.config.retry_after
         for session in list(self._sessions.values()):
+            if retry_after is not None:
+                session.retry(now, retry_after, self.config.max_age)
             session.expire(now, limit, self.transport.disconnects)
             if session.service.name in self._reopening:
                 self.reopen(session)

@@ -131,6 +131,7 @@ PROVIDER_INPUTS: dict[str, str] = {
     "dropped_oversize": "oversize",
     "dropped_overload": "overload",
     "dropped_replay": "replay",
+    "answered_again": "again",
 }
 """`ProviderStats` field -> outcome of ``ldm_provider_inputs_total``."""
 

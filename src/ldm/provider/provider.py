@@ -83,7 +83,12 @@ class ProviderStats:
     dropped_overload: int = 0
     """Input dropped on arrival because ``max_queue`` inputs were already waiting."""
     dropped_replay: int = 0
-    """Input whose correlation id was already seen under its key within ``max_age``."""
+    """Input whose correlation id was already seen under its key within ``max_age``, and
+    not answered yet (or no longer remembered)."""
+    answered_again: int = 0
+    """Input whose correlation id was already answered under its key within ``max_age``:
+    a participant's retry (``ParticipantConfig.retry_after``), answered with the same
+    reply again, the handler not called twice."""
     handler_errors: int = 0
     """The handler raised, or its reply could not be encoded or sent."""
     reply_batches: int = 0
@@ -91,6 +96,7 @@ class ProviderStats:
 
 
 _REPLAY_IDS = 1024  # correlation ids remembered per participant key (within max_age)
+_ANSWERS = 64  # replies remembered per participant key, for its retries (within max_age)
 
 
 @dataclass(slots=True)
@@ -99,6 +105,16 @@ class _Peer:
 
     cipher: SessionCipher
     seen: dict[str, float] = field(default_factory=dict)
+    answers: OrderedDict[str, tuple[bytes, float]] = field(default_factory=OrderedDict)
+    """Correlation id -> the sealed reply sent to it and when, newest last: a retry of
+    the same input is answered with the same bytes (idempotent), not handled again."""
+
+    def answered(self, c: str, sealed: bytes, now: float, oldest: float) -> None:
+        """Remember the reply to `c` (at most ``_ANSWERS``, none older than `oldest`)."""
+        answers = self.answers
+        answers[c] = (sealed, now)
+        while answers and (len(answers) > _ANSWERS or next(iter(answers.values()))[1] < oldest):
+            answers.popitem(last=False)
 
     def replayed(self, c: str, t: float, oldest: float) -> bool:
         """True if ``c`` came before; else remember it (ids older than ``oldest`` go)."""
@@ -118,6 +134,8 @@ class _Reply:
 
     cipher: SessionCipher
     qos: int
+    peer: _Peer | None = None
+    """The participant key's record, which remembers the replies for retries."""
 
 
 class Provider(Worker[Event]):
@@ -434,11 +452,22 @@ class Provider(Worker[Event]):
             self.stats.dropped_invalid += 1
             return None
         if peer.replayed(env.c, env.t, now - self.config.max_age):
-            self.stats.dropped_replay += 1
+            with self._count:
+                again = peer.answers.get(env.c)
+            if again is None or now - again[1] > self.config.max_age:
+                self.stats.dropped_replay += 1
+                return None
+            # A retry (or a broker's duplicate) of an input answered lately: the same
+            # reply again, so a reply lost on the way costs the participant one retry.
+            qos = msg.qos if self.config.data_qos is None else self.config.data_qos
+            topic = topics.provider_reply(self.name, pseudonym)
+            batch_topic = topics.provider_reply_batch(self.name)
+            self._outbox.add(self.transport, batch_topic, topic, pseudonym, again[0], qos)
+            self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
         qos = msg.qos if self.config.data_qos is None else self.config.data_qos
-        route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos)
+        route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos, peer)
         self._by_pseudonym.move_to_end(pseudonym)
         if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
@@ -479,3 +508,6 @@ class Provider(Worker[Event]):
             self._outbox.add(self.transport, batch_topic, topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1
+            if route.peer is not None:
+                sent = time.time()
+                route.peer.answered(correlation_id, sealed, sent, sent - self.config.max_age)

@@ -111,7 +111,7 @@ def _delayed_input_answered(url: str, delay: float) -> bool:
     """Send the laas worker at `url` one input stamped `delay` s ago, sealed for its key,
     as a clustered broker delivers input after a node failure; True if it replied."""
     replies: list[Message] = []
-    announced: list[bytes] = []
+    announced: list[Message] = []
 
     def sink(event: Event) -> None:
         if isinstance(event, Message):
@@ -147,16 +147,17 @@ def test_laas_worker_max_age_takes_input_delayed_by_a_failover(
     """`laas worker --max-age 10` (a process) answers an input that arrives 5 s after it
     was sent, as inputs do while a NATS cluster elects new leaders; by default (2 s) the
     worker drops it as stale (issue 25: the worker had no --max-age)."""
-    with start_broker("embedded") as broker:
-        argv = [sys.executable, "-m", "laas.cli", "worker", "--cluster", broker.url]
-        if max_age is not None:
-            argv += ["--max-age", str(max_age)]
-        node = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
+    broker = start_broker("embedded")
+    argv = [sys.executable, "-m", "laas.cli", "worker", "--cluster", broker.url]
+    if max_age is not None:
+        argv += ["--max-age", str(max_age)]
+    node = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
+    try:
+        assert _delayed_input_answered(broker.url, delay=5.0) is answered
+    finally:
+        node.send_signal(signal.SIGTERM)
         try:
-            assert _delayed_input_answered(broker.url, delay=5.0) is answered
-        finally:
-            node.send_signal(signal.SIGTERM)
-            try:
-                node.wait(30)
-            except subprocess.TimeoutExpired:
-                node.kill()
+            node.wait(30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+        broker.stop()

@@ -113,6 +113,7 @@ class _Pending:
     disconnects: int = 0  # the transport's count when sent
     envelope: Envelope | None = None  # as sent: a retry sends it again unchanged
     tried: float = 0.0  # when it was last sent (or sent again)
+    retries: int = 0  # how often it was sent again
 
 
 class Session:
@@ -300,21 +301,24 @@ class Session:
 
     def retry(self, now: float, after: float, max_age: float) -> None:
         """Send again, unchanged (same correlation id, time, key and tag), each input
-        unanswered for `after` s since it was last sent, while every hop would still take
-        it (younger than `max_age` - `after`). The provider answers a correlation id it
-        answered already with the same reply (`ProviderStats.answered_again`), so an
-        input or reply lost on the way (a broker node that died with it, data at QoS 0)
-        costs one retry, not the request."""
+        unanswered `after` s after it was sent, then after twice as long each time
+        (`after`, 2 `after`, 4 `after`, ...: a long outage costs a few retries per
+        input, not one every `after`), while every hop would still take it (younger
+        than `max_age`). The provider answers a correlation id it answered already with
+        the same reply (`ProviderStats.answered_again`), so an input or reply lost on the
+        way (a broker node that died with it, data at QoS 0) costs a retry, not the
+        request."""
         with self._lock:
             due = [
                 (p, p.envelope)
                 for p in self._pending.values()
                 if p.envelope is not None
-                and now - p.tried >= after
-                and now - p.sent + after < max_age
+                and now - p.tried >= after * 2**p.retries
+                and now - p.sent < max_age
             ]
             for p, _ in due:
                 p.tried = now
+                p.retries += 1
         for _, envelope in due:
             if self._participant.publish_input(self, envelope):
                 self.retries += 1

@@ -55,7 +55,7 @@ class RequestRejected(SessionError):
     ``too_large``: the payload is over the core's ``max_payload``; ``invalid``: the
     message was malformed; ``clock``: its time is too far ahead of the core's clock;
     ``unavailable``: the core cannot reach the service now (its backbone broker is
-    unreachable or does not acknowledge), so send again later.
+    unreachable), so send again later.
     """
 
     def __init__(self, reason: str, message: str) -> None:

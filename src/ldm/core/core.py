@@ -102,8 +102,8 @@ _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
 _UNREACHABLE = 1.0
-"""s: a backbone broker unreachable (or not acknowledging) this long fails input for
-other clusters' services at once (``unavailable``), rather than after its timeout."""
+"""s: a backbone broker unreachable this long fails QoS 1/2 input for other clusters'
+services at once (``unavailable``), rather than after its timeout."""
 _CLEAR_RATE = 1000.0  # clearings a second of participant topics that are no session's
 _REKEY_SLACK = 0.1
 """A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
@@ -150,8 +150,8 @@ class CoreStats:
     rejected_rekey: int = 0
     """Input under a new ephemeral key too soon after the last one (answered ``rate_limited``)."""
     rejected_unavailable: int = 0
-    """Input for another cluster's service while the backbone broker has been unreachable,
-    or has not acknowledged, for ``_UNREACHABLE`` s (answered ``unavailable``)."""
+    """Input for another cluster's service while the backbone broker is unreachable
+    (`Core._backbone_problem`; answered ``unavailable``)."""
     granted: int = 0
     answered_nosession: int = 0
     """Input or requests for a session the core does not hold (answered ``nosession``)."""
@@ -1154,7 +1154,10 @@ class Core(Worker[Event]):
             problem = self._backbone_problem(now, service)
             if problem is not None:
                 self.stats.rejected_unavailable += 1
-                self._reject(charge, client, service, "unavailable", problem, c=env.c)
+                # Answered whatever the notice bucket holds: the input is authentic (its
+                # tag was checked) and paid for, and an unanswered one would be lost
+                # silently until it times out.
+                self._reject(charge, client, service, "unavailable", problem, c=env.c, paid=True)
                 return session.current is not before
             self._outbox.add(
                 self.backbone,
@@ -1186,22 +1189,20 @@ class Core(Worker[Event]):
 
     def _backbone_problem(self, now: float, service: str) -> str | None:
         """Why input for `service`, on another cluster, cannot leave now: the backbone
-        broker is unreachable (at QoS 0, which the transport does not hold; at QoS 1/2
-        for ``_UNREACHABLE`` s), or has not acknowledged a QoS 1 message (a NATS cluster
-        without quorum) for ``_UNREACHABLE`` s. None when it can."""
+        broker is unreachable (at QoS 0, which the transport does not hold, at once; at
+        QoS 1/2, which it holds for the reconnect, after ``_UNREACHABLE`` s). None when
+        it can. (A broker that is connected but slow to acknowledge, as NATS while it
+        elects leaders, still gets QoS 1/2 input: it is stored and delivered late.)"""
         backbone = self.backbone
         if backbone is None:
             return None
         down = backbone.down_since
-        if down is not None and (self.config.data_qos == 0 or now - down >= _UNREACHABLE):
-            why = f"unreachable for {now - down:.1f} s ({backbone.problem})"
-        elif (waited := backbone.unacked_for(now)) >= _UNREACHABLE:
-            why = f"has not acknowledged a message for {waited:.1f} s"
-        else:
+        if down is None or (self.config.data_qos > 0 and now - down < _UNREACHABLE):
             return None
         return (
             f"service {service!r} is in another cluster and this core's backbone broker "
-            f"{why}: nothing reaches it now; send again later"
+            f"has been unreachable for {now - down:.1f} s ({backbone.problem}): nothing "
+            "reaches it now; send again later"
         )
 
     def _pseudonym_for(

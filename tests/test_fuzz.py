@@ -342,7 +342,12 @@ def test_provider_input_decoder(
 
     def outcomes() -> int:
         return (
-            s.requests + s.dropped_invalid + s.dropped_stale + s.dropped_oversize + s.dropped_replay
+            s.requests
+            + s.dropped_invalid
+            + s.dropped_stale
+            + s.dropped_oversize
+            + s.dropped_replay
+            + s.answered_again
         )
 
     for payload in batch:

@@ -3,10 +3,16 @@ and the old module names that still name its parts."""
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 import laas.asyncapi
 import laas.metrics
@@ -29,7 +35,11 @@ from laas.worker import (
     serve_worker,
     service,
 )
-from ldm import BrokerSettings, Participant
+from ldm import BrokerSettings, KeyPair, Participant
+from ldm.local.brokers import start_broker
+from ldm.security.crypto import aad
+from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire.messages import Announcement, Envelope
 
 
 def test_serve_worker_serves_a_region_and_says_what_it_did(
@@ -95,3 +105,59 @@ def test_the_old_module_names_name_the_workers_parts() -> None:
         assert old.__all__ == new.__all__
         assert all(getattr(old, name) is getattr(new, name) for name in new.__all__)
     assert laas.worker.LaasService is service.LaasService
+
+
+def _delayed_input_answered(url: str, delay: float) -> bool:
+    """Send the laas worker at `url` one input stamped `delay` s ago, sealed for its key,
+    as a clustered broker delivers input after a node failure; True if it replied."""
+    replies: list[Message] = []
+    announced: list[Message] = []
+
+    def sink(event: Event) -> None:
+        if isinstance(event, Message):
+            (announced if event.topic.endswith("/announce") else replies).append(event)
+
+    spy = Transport(BrokerSettings(url=url), client_id="late-input", sink=sink)
+    for flt in ("ldm/svc/laas/announce", "ldm/svc/laas/out", "ldm/svc/laas/out/+"):
+        spy.subscribe(flt, 1)
+    spy.start(5)
+    try:
+        deadline = time.monotonic() + 30
+        while not any(m.payload for m in announced) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        ann = Announcement.model_validate_json(next(m for m in announced if m.payload).payload)
+        mine = KeyPair()
+        c, t = "late-1", time.time() - delay
+        fix = {"timestamp": int(t * 1000), "latitude": 53.56, "longitude": 9.97}
+        sealed = mine.cipher(ann.service.public_key, initiator=True).seal(
+            json.dumps(fix).encode(), aad(c, t)
+        )
+        env = Envelope(c=c, t=t, k=mine.public, d=sealed)
+        spy.publish("ldm/svc/laas/in/pseudo-late", env.encode(), qos=1)
+        time.sleep(2.0)
+        return bool(replies)
+    finally:
+        spy.stop()
+
+
+@pytest.mark.parametrize(("max_age", "answered"), [(None, False), (10.0, True)])
+def test_laas_worker_max_age_takes_input_delayed_by_a_failover(
+    max_age: float | None, answered: bool
+) -> None:
+    """`laas worker --max-age 10` (a process) answers an input that arrives 5 s after it
+    was sent, as inputs do while a NATS cluster elects new leaders; by default (2 s) the
+    worker drops it as stale (issue 25: the worker had no --max-age)."""
+    broker = start_broker("embedded")
+    argv = [sys.executable, "-m", "laas.cli", "worker", "--cluster", broker.url]
+    if max_age is not None:
+        argv += ["--max-age", str(max_age)]
+    node = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
+    try:
+        assert _delayed_input_answered(broker.url, delay=5.0) is answered
+    finally:
+        node.send_signal(signal.SIGTERM)
+        try:
+            node.wait(30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+        broker.stop()

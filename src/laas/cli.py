@@ -280,6 +280,7 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
         identity=a.identity,
         endorsement=a.endorsement,
         data_qos=a.data_qos,
+        max_age=a.max_age,
         http_port=a.http,
         http_host=a.http_host,
     )
@@ -311,6 +312,8 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         trace,
         account_prefix=a.account_prefix,
         speedup=a.speedup,
+        reply_timeout=max(5.0, 2 * a.max_age + 1.0),  # the participant's own limit, and more
+        max_age=a.max_age,
         progress=progress_printer("  sent", "fixes"),
         service_keys={"laas": a.service_key} if a.service_key else {},
         anchors=a.trust_anchor,
@@ -336,6 +339,19 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
+
+
+def _max_age_arg(p: argparse.ArgumentParser, what: str) -> None:
+    """`--max-age`: every hop drops what is older than its max_age (docs/brokers.md)."""
+    p.add_argument(
+        "--max-age",
+        type=float,
+        default=float(os.environ.get("LAAS_MAX_AGE", "2")),
+        metavar="SECONDS",
+        help=f"{what} (env LAAS_MAX_AGE; default 2 s). Give every hop the same: the "
+        "cores' `ldm core --max-age`; on a NATS cluster about 10 s, the time it takes "
+        "to elect new leaders after a node fails (docs/brokers.md)",
+    )
 
 
 def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
@@ -629,6 +645,7 @@ def _add_worker(sub: Any) -> None:
         help="wait until the worker of this service (or --region) is gone, then take "
         "over under the same --identity",
     )
+    _max_age_arg(p, "drop input older than this when its turn comes")
     p.add_argument(
         "--max-speedup",
         type=float,
@@ -648,6 +665,7 @@ def _add_simulate(sub: Any) -> None:
     _connection_args(p, "LAAS")
     _scenario_args(p)
     p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
+    _max_age_arg(p, "drop replies older than this, and fail a request after 2x this + 1 s")
     p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
     p.add_argument(
         "--account-prefix",

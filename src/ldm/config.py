@@ -316,8 +316,15 @@ class ProviderConfig(_Settings):
     description and announcements; None: a new identity each start."""
     endorsement: str | None = Field(default=None, pattern=r"^[A-Za-z0-9+/=]{88}$")
     """A trust anchor's endorsement of the identity (`ldm keys endorse`)."""
+    cluster: str | None = None
+    """The name of the core of the provider's cluster, which every announcement is
+    signed for (a copy replayed on another cluster is refused there). None: taken from
+    the cluster's retained service list (signed by ``core_key``, when that is set)."""
+    core_key: str | None = Field(default=None, pattern=_B64_KEY)
+    """The cluster core's Ed25519 public key: only its list names the cluster."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
+    _check_cluster = field_validator("cluster")(lambda v: None if v is None else _name(v))
 
     _check_broker = field_validator("broker", mode="before")(_url_as_broker)
 
@@ -341,6 +348,20 @@ class ParticipantConfig(_Settings):
     signed act; unsigned or forged ones change nothing."""
     notice_window: float = Field(default=30.0, gt=0)
     """A signed notice older (or further ahead) than this is ignored as a replay."""
+    retry_after: float | None = Field(default=None, gt=0)
+    """Send an input again, unchanged, when no reply came this many seconds after it was
+    last sent, while it is younger than ``max_age`` (checked every 0.25 s); the provider
+    answers a retry with the reply it made (idempotent). None (default): no retries.
+    With data at QoS 0 on a broker cluster, 0.5 makes a lost input or reply cost one
+    retry instead of the request (docs/brokers.md)."""
+    unreachable_after: float = Field(default=1.5, gt=0)
+    """With no broker node connected for this long, every request waiting, and each new
+    one, fails at once with `ConnectError` saying so (a cluster that lost its quorum
+    refuses every connection), instead of timing out after 2 x max_age + 1 s. 1.5 s
+    and a tick (0.25 s): the error comes within 2 s of the loss."""
+    max_list: int = Field(default=512 * 1024, ge=1024)
+    """A service list longer than this (bytes) is ignored unread: a forged list must
+    not cost a participant more than reading this much."""
 
     _check_name = field_validator("client_id")(lambda v: None if v is None else _name(v))
     _check_keys = field_validator("service_keys")(_keys)

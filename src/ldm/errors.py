@@ -53,7 +53,9 @@ class RequestRejected(SessionError):
 
     ``rate_limited``: slow down (the core's per-participant rate and burst);
     ``too_large``: the payload is over the core's ``max_payload``; ``invalid``: the
-    message was malformed; ``clock``: its time is too far ahead of the core's clock.
+    message was malformed; ``clock``: its time is too far ahead of the core's clock;
+    ``unavailable``: the core cannot reach the service now (its backbone broker is
+    unreachable), so send again later.
     """
 
     def __init__(self, reason: str, message: str) -> None:

@@ -113,6 +113,7 @@ _ECHO_ACCOUNT = (
     f"user {PROVIDER_USER}\n"
     "topic readwrite ldm/svc/echo/announce\n"
     "topic read ldm/svc/echo/in/#\n"
+    "topic read ldm/services\n"
     "topic write ldm/svc/echo/out/#\n"
 )
 
@@ -950,10 +951,16 @@ class HostileDeployment:
             announce_interval=0.3,
             max_age=self.timing["max_age"],
         )
+        self._provider_config = config
         self.provider = Provider(config, ECHO, self.echo, identity=self.identity).start(timeout=5)
-        self._stack.callback(self.provider.stop)
+        self._stack.callback(lambda: self.provider.stop())
         assert wait_for(lambda: self._listed(self.witness), 5), "echo never listed"
         assert wait_for(lambda: self._listed(self.attacker), 5), "the attacker saw no list"
+
+    def restart_provider(self) -> Provider:
+        """A new echo provider, same identity, new session key (after a kill or stop)."""
+        self.provider = Provider(self._provider_config, ECHO, self.echo, identity=self.identity)
+        return self.provider.start(timeout=5)
 
     def _recorder(self, recorder: _R) -> _R:
         recorder.start()

@@ -8,11 +8,13 @@ from typing import Any
 
 import pytest
 
-from ldm import Core, LdmError
+from ldm import ConnectError, Core, LdmError, Participant, RequestRejected
 from ldm.client.participant import Session
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
+from ldm.security.crypto import KeyPair, aad
 from ldm.transport.mqtt import Connected, Event, Message, Transport
+from ldm.wire.messages import Envelope
 
 from .deployment import FAST, deploy, echo_provider, has_service
 
@@ -125,3 +127,120 @@ def test_a_publish_as_the_transport_reconnects_waits_for_the_connack(mqtt_broker
     finally:
         sender.stop()
         receiver.stop()
+
+
+NO_BROKER_ERROR = 2.0
+"""With no broker node to take its input, a participant's request fails with a clear
+error within 2 s (issue 25; before: RequestTimeout after 2 x max_age + 1 = 5 s)."""
+
+
+def test_a_participant_without_a_broker_fails_its_requests_within_2_s(deployment) -> None:
+    """The user broker goes away (as a NATS cluster that lost its quorum refuses every
+    connection): the request in flight and every new one fail with ConnectError naming
+    the problem within NO_BROKER_ERROR, not by timing out; with the broker back, the
+    session works again."""
+    d = deployment
+    p = Participant.create(d.user.url, client_id="una-car-9", max_age=FAST["max_age"], data_qos=1)
+    p.start(timeout=5)
+    d.participants.append(p)
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.user.stop()
+    lost = time.monotonic()
+    in_flight = session.submit({"during": 1})  # QoS 1: held for the reconnect
+    with pytest.raises(ConnectError, match="no broker node reachable"):
+        in_flight.result(NO_BROKER_ERROR + 3)
+    assert time.monotonic() - lost <= NO_BROKER_ERROR
+    started = time.monotonic()
+    with pytest.raises(ConnectError, match="send again once"):
+        session.submit({"later": 1}).result(1)
+    assert time.monotonic() - started < 0.5, "a new request waited instead of failing at once"
+    d.user.start()
+    works_again(session)
+
+
+def test_input_for_a_service_behind_a_lost_backbone_is_refused_at_once(deployment) -> None:
+    """The backbone broker goes away: the user core refuses input for the service of
+    the other cluster with ``unavailable`` (a clear error within NO_BROKER_ERROR) instead
+    of dropping it (at QoS 0 the transport cannot hold it: before, each request timed
+    out after 5 s); with the backbone back, the session works again."""
+    d = deployment
+    p = d.participant("vera-car-3")
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.backbone.stop()
+    assert wait_for(lambda: not d.user_core.backbone.connected, 5)
+    waits: list[float] = []
+    futures = []
+    for i in range(8):
+        at = time.monotonic()
+        future = session.submit({"during": i})
+        future.add_done_callback(lambda _f, at=at: waits.append(time.monotonic() - at))
+        futures.append(future)
+        time.sleep(0.1)
+    for future in futures:
+        with pytest.raises(RequestRejected, match="backbone broker") as info:
+            future.result(NO_BROKER_ERROR + 3)
+        assert info.value.reason == "unavailable"
+    assert max(waits) <= NO_BROKER_ERROR, waits
+    assert d.user_core.stats.rejected_unavailable == len(futures)
+    d.backbone.start()
+    works_again(session)
+
+
+def test_a_retry_recovers_an_input_lost_in_a_failover(deployment) -> None:
+    """The service cluster's broker restarts while an input is on its way: the service
+    core cannot forward it (data at QoS 0 is not held), so it is lost. With
+    ``retry_after`` the participant sends it again, unchanged, and it is answered
+    within max_age (before: RequestTimeout after 5 s). A retry of an input answered
+    already is answered by the provider with the same reply, the handler not called
+    again."""
+    d = deployment
+    p = Participant.create(
+        d.user.url, client_id="wim-car-2", max_age=FAST["max_age"], retry_after=0.25
+    )
+    p.start(timeout=5)
+    d.participants.append(p)
+    d.wait_listed(p)
+    session = p.open("echo")
+    assert session.request({"before": 1}) == {"echo": {"before": 1}}
+    d.service.stop()
+    assert wait_for(lambda: not d.service_core.cluster.connected, 5)
+    lost = session.submit({"lost": 1})
+    time.sleep(0.1)
+    d.service.start()
+    assert lost.result(FAST["max_age"] + 1) == {"echo": {"lost": 1}}
+    assert session.retries >= 1
+
+
+def test_the_provider_answers_a_retry_with_the_same_reply(deployment) -> None:
+    """The same input twice on the provider's topic (a retry, or a broker's duplicate):
+    the handler runs once and the same sealed reply goes out twice (before: the second
+    was dropped as a replay, and a lost reply stayed lost)."""
+    d = deployment
+    replies: list[Message] = []
+    spy = Transport(
+        BrokerSettings(url=d.service.url),
+        client_id="retry-spy",
+        sink=lambda e: replies.append(e) if isinstance(e, Message) else None,
+    )
+    for flt in ("ldm/svc/echo/out", "ldm/svc/echo/out/+"):
+        spy.subscribe(flt, 1)
+    spy.start(5)
+    try:
+        mine = KeyPair()
+        c, t = "retry-1", time.time()
+        sealed = mine.cipher(d.provider.key.public, initiator=True).seal(b'{"x":1}', aad(c, t))
+        envelope = Envelope(c=c, t=t, k=mine.public, d=sealed).encode()
+        handled = len(d.echo.requests)
+        for _ in range(2):
+            spy.publish("ldm/svc/echo/in/pseudo-retry", envelope, qos=1)
+            time.sleep(0.3)
+        assert wait_for(lambda: len(replies) >= 2, 3), f"{len(replies)} replies"
+        assert len(d.echo.requests) == handled + 1, "the handler ran twice"
+        assert d.provider.stats.answered_again == 1
+        assert len({m.payload.splitlines()[-1] for m in replies}) == 1  # the same reply
+    finally:
+        spy.stop()

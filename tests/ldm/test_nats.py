@@ -18,8 +18,10 @@ from ldm import (
     ConfigError,
     ConnectError,
     Core,
+    LdmError,
     Participant,
     Provider,
+    RequestRejected,
     RequestTimeout,
     ServiceNotFound,
 )
@@ -245,9 +247,16 @@ class NatsDeployment:
             max_age=PATIENT["max_age"],
         ).start(timeout=15)
 
-    def participant(self, client_id: str, first: int) -> Participant:
+    def participant(self, client_id: str, first: int, **settings: Any) -> Participant:
+        # Patient by default: a participant whose node died may wait for JetStream's new
+        # leaders (5-11 s) before it is connected again; with unreachable_after at its
+        # default (1.5 s) its requests would fail meanwhile instead (ConnectError).
+        settings.setdefault("unreachable_after", PATIENT["max_age"])
         p = Participant.create(
-            self.cluster.settings("user", first), client_id=client_id, max_age=PATIENT["max_age"]
+            self.cluster.settings("user", first),
+            client_id=client_id,
+            max_age=PATIENT["max_age"],
+            **settings,
         ).start(timeout=15)
         self.participants.append(p)
         assert wait_for(has_service(p, "echo"), 15), "echo never listed"
@@ -371,7 +380,8 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
             f"\nNATS failover: {len(sent)} inputs at QoS 1, node 0 killed; lost 0, refused "
             f"by the user core {len(refused)} {kinds}; on another node after {reconnect}; slowest "
             f"reply {worst:.2f} s; duplicates dropped by the provider "
-            f"{d.provider.stats.dropped_replay}"
+            f"{d.provider.stats.dropped_replay}, answered again "
+            f"{d.provider.stats.answered_again}"
         )
         assert worst < 20.0
     finally:
@@ -392,3 +402,94 @@ def test_the_cluster_tells_an_operator_each_nodes_process_and_monitoring_port(
         assert url in line
         with urllib.request.urlopen(url, timeout=10) as reply:
             assert reply.status == 200
+
+
+def test_with_its_quorum_lost_the_cluster_gives_a_clear_error_within_2_s(
+    cluster: NatsCluster,
+) -> None:
+    """Two of three nodes killed (JetStream has no quorum): a participant's request
+    fails with an error that says what is wrong within 2 s, instead of nothing (before:
+    no answer and no error for 2 x max_age + 1 s, 41 s with max_age 20)."""
+    d = NatsDeployment(cluster, data_qos=1)
+    try:
+        p = d.participant("car-q", first=2, unreachable_after=1.5)
+        session = p.open("echo", timeout=10)
+        assert session.request({"before": 1}, timeout=10) == {"echo": {"before": 1}}
+        cluster.kill(0)
+        cluster.kill(1)
+        lost = time.monotonic()
+        sent: list[Sent] = []
+        while time.monotonic() - lost < 3.0:
+            sent.append(Sent.of("car-q", len(sent), session))
+            time.sleep(0.1)
+        assert wait_for(lambda: all(x.future.done() for x in sent), 10), "requests left waiting"
+        errors = [x.future.exception() for x in sent]
+        kinds = sorted({type(e).__name__ for e in errors})
+        assert all(isinstance(e, ConnectError) for e in errors), kinds
+        # Each failed within 2 s of the loss, or of being sent after it.
+        waits = [x.answered[0] - max(x.at, lost) for x in sent]
+        print(f"\nquorum lost: {len(sent)} requests, all {kinds}; longest wait {max(waits):.2f} s")
+        print(f"  {errors[0]}")
+        assert max(waits) <= 2.0, waits
+    finally:
+        d.close()
+
+
+def test_killing_a_node_with_data_at_qos0_and_retries(cluster: NatsCluster) -> None:
+    """As the QoS 1 test above, with data at QoS 0 and end-to-end retries (issue 25):
+    each participant sends an unanswered input again after 0.5 s and fails a request
+    at once when no node takes or acknowledges its messages for 1.5 s. Every input is
+    answered or failed with an error (none is lost silently); prints how long after the
+    kill answers flowed again for each participant."""
+    d = NatsDeployment(cluster, data_qos=0)
+    try:
+        people = [
+            d.participant(f"car-{n}", first=n, retry_after=0.5, unreachable_after=1.5)
+            for n in range(3)
+        ]
+        sessions = [p.open("echo", timeout=10) for p in people]
+        sent: list[Sent] = []
+        killed_at = 0.0
+        start = time.monotonic()
+        i = 0
+        while time.monotonic() - start < 8.0:
+            for p, s in zip(people, sessions, strict=True):
+                sent.append(Sent.of(p.client_id, i, s))
+            i += 1
+            if not killed_at and time.monotonic() - start > 2.0:
+                cluster.kill(0)
+                killed_at = time.monotonic()
+            time.sleep(0.05)
+        assert wait_for(lambda: all(x.future.done() for x in sent), 45), "requests left waiting"
+        kinds: dict[str, int] = {}
+        for x in sent:
+            error = x.future.exception()
+            name = "answered" if error is None else type(error).__name__
+            if isinstance(error, RequestRejected):
+                name += f" ({error.reason})"
+            kinds[name] = kinds.get(name, 0) + 1
+        # After the kill: for each participant, the first input sent after which every
+        # later input was answered; how long after the kill it was sent.
+        back = {}
+        for p in people:
+            mine = [x for x in sent if x.who == p.client_id and x.at >= killed_at]
+            ok = [x.future.exception() is None for x in mine]
+            first = next((k for k in range(len(ok)) if all(ok[k:])), None)
+            back[p.client_id] = "never" if first is None else f"{mine[first].at - killed_at:.2f} s"
+        retries = sum(s.retries for s in sessions)
+        print(
+            f"\nNATS failover at QoS 0 with retries: {len(sent)} inputs {kinds}; answered "
+            f"again for good after {back}; retries {retries}; answered again by the provider "
+            f"{d.provider.stats.answered_again}"
+        )
+        slowest = max(x.answered[0] - x.at for x in sent if x.future.exception() is None)
+        print(
+            f"  slowest answer {slowest:.2f} s; inputs forwarded by the user core "
+            f"{d.user_core.stats.forwarded_in}, taken by the provider "
+            f"{d.provider.stats.requests}"
+        )
+        # Nothing lost silently: every input answered, or failed with an LdmError that
+        # says why (a participant whose node died waits for JetStream's new leaders).
+        assert all(isinstance(x.future.exception(), LdmError | None) for x in sent), kinds
+    finally:
+        d.close()

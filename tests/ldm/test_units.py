@@ -180,8 +180,9 @@ def test_the_provider_drops_replays_and_altered_times() -> None:
             provider.handle(Message("ldm/svc/echo/in/p1", e.encode(), 1, False, "svc"))
 
         deliver(env)
-        deliver(env)  # the same message again, within max_age
-        assert (provider.stats.requests, provider.stats.dropped_replay) == (1, 1)
+        deliver(env)  # the same message again, within max_age: the same reply again
+        stats = provider.stats
+        assert (stats.requests, stats.answered_again, stats.dropped_replay) == (1, 1, 0)
         deliver(env.model_copy(update={"t": t + 0.5}))  # a fresher time is not authentic
         deliver(env.model_copy(update={"c": "c2"}))  # nor another correlation id
         assert (provider.stats.requests, provider.stats.dropped_invalid) == (1, 2)

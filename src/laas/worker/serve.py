@@ -44,6 +44,8 @@ class ServeOptions:
     identity: Path | None = None
     endorsement: str | None = None
     data_qos: int | None = None
+    max_age: float = 2.0
+    """Input older than this (s) when its turn comes is dropped (`ProviderConfig.max_age`)."""
     http_port: int | None = None
     """Serve the live map on this port (0: a free one); None: no live map."""
     http_host: str = "127.0.0.1"
@@ -87,6 +89,7 @@ def serve_worker(
         options.limits,
         region=region,
         data_qos=options.data_qos,
+        max_age=options.max_age,
         identity_file=options.identity,
         endorsement=options.endorsement,
     )

@@ -37,7 +37,7 @@ from ldm.errors import (
     TrustError,
 )
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
-from ldm.security.identity import verify
+from ldm.security.identity import canonical, verify
 from ldm.security.trust import Trust
 from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
 from ldm.transport.worker import Worker
@@ -61,6 +61,23 @@ _MAX_REQUESTS = 64  # session requests awaiting their grant, remembered at once
 
 def _token() -> str:
     return secrets.token_urlsafe(9)
+
+
+def _signed(key: str, payload: bytes) -> bool:
+    """Whether a service list's JSON carries `key`'s signature, checked on the parsed
+    JSON before any validation: the core signs ``canonical("ldm-list/1", fields)`` of
+    the same fields it publishes (`ServiceList.signed_text`)."""
+    try:
+        body = json.loads(payload)
+    except (ValueError, RecursionError):
+        return False
+    if not isinstance(body, dict):
+        return False
+    sig = body.pop("sig", None)
+    try:
+        return isinstance(sig, str) and verify(key, canonical("ldm-list/1", body), sig)
+    except ValueError:  # NaN or infinities: never signed
+        return False
 
 
 def _settle(future: Future[Any], result: Any = None, error: BaseException | None = None) -> None:
@@ -94,6 +111,9 @@ class _Pending:
     plaintext: bytes
     sent: float
     disconnects: int = 0  # the transport's count when sent
+    envelope: Envelope | None = None  # as sent: a retry sends it again unchanged
+    tried: float = 0.0  # when it was last sent (or sent again)
+    retries: int = 0  # how often it was sent again
 
 
 class Session:
@@ -113,8 +133,12 @@ class Session:
         self._lock = threading.Lock()
         self._secret = secret  # shared with the core by the grant; tags every input
         self._rotated_at = time.time()
+        self._sent_keys: _Keys | None = None  # the latest key input went out under
+        self._first_sent = 0.0  # when input first went out under it: the core's clock
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
+        self.retries = 0
+        """Inputs sent again unanswered (`retry`; ``ParticipantConfig.retry_after``)."""
 
     @property
     def service(self) -> ServiceDescription:
@@ -161,11 +185,20 @@ class Session:
     def _send(self, c: str, pending: _Pending) -> None:
         keys = pending.keys
         pending.sent = time.time()
+        unreachable = self._participant.unreachable(pending.sent)
+        if unreachable is not None:
+            self.fail(c, unreachable)
+            return
+        if keys is not self._sent_keys:
+            with self._lock:
+                if keys is not self._sent_keys:
+                    self._sent_keys, self._first_sent = keys, pending.sent
         pending.disconnects = self._participant.disconnects
         sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
         k, secret = keys.pair.public, self._secret
         tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
         env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
+        pending.envelope, pending.tried = env, pending.sent
         if not self._participant.publish_input(self, env):
             self.fail(
                 c,
@@ -181,23 +214,33 @@ class Session:
         """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
 
         The core refuses a session's new key sooner than that, so a rotation more often,
-        asked by a replayed or forged notice, would only lock the session out.
+        asked by a replayed or forged notice, would only lock the session out. Both
+        count from the first input under the current key, the core from its arrival
+        (counted from the rotation instead, the participant ran ahead of the core by
+        the time until its next input, and the core refused the new key: issue 25).
         """
         if now - self._rotated_at < self.grant.rekey_interval:
+            return False
+        if now - self._first_sent < self.grant.rekey_interval:
             return False
         self._keys = _Keys.new(self.grant.service)
         self._rotated_at = now
         self.rotations += 1
         return True
 
-    def regrant(self, grant: SessionGrant, secret: bytes | None) -> None:
+    def regrant(self, grant: SessionGrant, secret: bytes | None) -> bool:
         """The core granted the session again: new key, re-send what is still waiting.
 
         Each re-sent input gets a new correlation id: the old one travelled under the
         old pseudonym, and the same id under the new one would link the two. The key
         stays if it changed within the last ``rekey_interval`` and the service's key is
-        the same (the core would refuse a new one).
+        the same (the core would refuse a new one). A grant of the same service
+        identity with an older description (``issued``) changes nothing (False): the
+        session never goes back to an older key.
         """
+        held = self.grant.service
+        if grant.service.identity == held.identity and grant.service.issued < held.issued:
+            return False
         changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
         self._secret = secret
@@ -214,6 +257,7 @@ class Session:
         for c, pending in resend:
             pending.keys = self._keys
             self._send(c, pending)
+        return True
 
     def settle(self, env: Envelope) -> bool:
         """Settle the request ``env`` answers; False (and nothing changes) if it is not
@@ -254,6 +298,30 @@ class Session:
             pending, self._pending = list(self._pending.values()), {}
         for p in pending:
             _settle(p.future, error=error)
+
+    def retry(self, now: float, after: float, max_age: float) -> None:
+        """Send again, unchanged (same correlation id, time, key and tag), each input
+        unanswered `after` s after it was sent, then after twice as long each time
+        (`after`, 2 `after`, 4 `after`, ...: a long outage costs a few retries per
+        input, not one every `after`), while every hop would still take it (younger
+        than `max_age`). The provider answers a correlation id it answered already with
+        the same reply (`ProviderStats.answered_again`), so an input or reply lost on the
+        way (a broker node that died with it, data at QoS 0) costs a retry, not the
+        request."""
+        with self._lock:
+            due = [
+                (p, p.envelope)
+                for p in self._pending.values()
+                if p.envelope is not None
+                and now - p.tried >= after * 2**p.retries
+                and now - p.sent < max_age
+            ]
+            for p, _ in due:
+                p.tried = now
+                p.retries += 1
+        for _, envelope in due:
+            if self._participant.publish_input(self, envelope):
+                self.retries += 1
 
     def expire(self, now: float, limit: float, disconnects: int) -> None:
         """Fail the requests older than `limit` s (RequestTimeout), and ask the
@@ -498,8 +566,9 @@ class Participant(Worker[Event]):
         )
 
     def _service_list(self, payload: bytes) -> None:
-        """Take a service list: signed by the pinned core (if any), never older than the
-        last one, and only the services the participant trusts.
+        """Take a service list: at most ``max_list`` bytes, signed by the pinned core
+        (if any; checked on the JSON before the list is validated), never older than
+        the last one, and only the services the participant trusts.
 
         An empty payload is the core clearing its list (it stopped): no services, and
         no session is touched.
@@ -508,10 +577,13 @@ class Participant(Worker[Event]):
             self._services = []
             self._have_list.set()
             return
-        listing = ServiceList.model_validate_json(payload)
         key = self.config.core_key
+        if len(payload) > self.config.max_list or (key is not None and not _signed(key, payload)):
+            self.ignored += 1  # checked before the list is validated: a forgery costs little
+            return
+        listing = ServiceList.model_validate_json(payload)
         if key is not None:
-            if not verify(key, listing.signed_text(), listing.sig) or listing.t < self._list_t:
+            if listing.t < self._list_t:
                 self.ignored += 1
                 return
             self._list_t = listing.t
@@ -536,8 +608,12 @@ class Participant(Worker[Event]):
                 secret = key.session_secret(notice.grant.auth_key)
             if opening is not None:
                 _settle(opening, (notice.grant, secret))  # a duplicate (QoS 1) finds it done
-            elif session is not None and self._reopened(notice.service, notice.c):
-                session.regrant(notice.grant, secret)
+            elif (
+                session is not None
+                and self._reopened(notice.service, notice.c)
+                and not session.regrant(notice.grant, secret)
+            ):
+                self.ignored += 1  # an older description: the session keeps its key
         elif notice.kind == "refused":
             error = ServiceNotFound(notice.error or f"service {notice.service!r} refused")
             with self._lock:
@@ -578,9 +654,41 @@ class Participant(Worker[Event]):
             ):
                 self.reopen(session)
 
+    def unreachable(self, now: float) -> ConnectError | None:
+        """The error for every request while no broker node has taken the connection,
+        or acknowledged a QoS 1 message, for ``unreachable_after`` seconds (None while
+        it is not so)."""
+        limit = self.config.unreachable_after
+        down = self.transport.down_since
+        if down is not None and now - down >= limit:
+            return ConnectError(
+                f"no broker node reachable for {now - down:.1f} s ({self.transport.problem}; "
+                f"tried {self.config.broker.url}): nothing can be sent or answered now, so "
+                "the request failed rather than wait (it may or may not have reached the "
+                "service). A cluster that lost its quorum refuses every connection: send "
+                "again once `transport.connected` is true"
+            )
+        waited = self.transport.unacked_for(now)
+        if waited >= limit:
+            return ConnectError(
+                f"the broker at {self.transport.address[0]}:{self.transport.address[1]} has "
+                f"not acknowledged a message for {waited:.1f} s: it takes the connection but "
+                "cannot store input (a NATS cluster that lost its JetStream quorum does "
+                "this), so the request failed rather than wait. Send again once the broker "
+                "acknowledges again"
+            )
+        return None
+
     def tick(self, now: float) -> None:
         limit = 2 * self.config.max_age + 1.0
+        unreachable = self.unreachable(now)
+        if unreachable is not None:
+            for session in list(self._sessions.values()):
+                session.fail_all(unreachable)
+        retry_after = self.config.retry_after
         for session in list(self._sessions.values()):
+            if retry_after is not None:
+                session.retry(now, retry_after, self.config.max_age)
             session.expire(now, limit, self.transport.disconnects)
             if session.service.name in self._reopening:
                 self.reopen(session)

@@ -31,6 +31,7 @@ __all__ = [
     "SessionKeys",
     "envelope_key",
     "request_like",
+    "tag_secret",
     "tagged",
 ]
 
@@ -122,15 +123,15 @@ _TAG_CHECK_MAX = 4096  # bytes: larger input is not checked at intake (charged `
 @dataclass(frozen=True, slots=True)
 class SessionKeys:
     """What intake knows of one session: its ephemeral keys with the end of their grace
-    (inf: current), and the secret its input is tagged with (None: none yet)."""
+    (inf: current), and the secrets its input may be tagged with (none yet: empty)."""
 
     keys: tuple[tuple[bytes, float], ...]
-    secret: bytes | None
+    secrets: tuple[bytes, ...]
 
     def claims(self, payload: bytes, now: float) -> bool:
         """Whether `payload` may be this session's input (cheap: a find or two): it has
         a tag (a session with a secret) or one of the session's keys (one without)."""
-        if self.secret is not None:
+        if self.secrets:
             return b'"m"' in payload
         k = envelope_key(payload)
         return k is not None and any(key == k and until > now for key, until in self.keys)
@@ -158,21 +159,29 @@ def request_like(payload: bytes) -> bool:
     return len(payload) <= 1024 and b'"service"' in payload
 
 
-def tagged(secret: bytes, payload: bytes) -> Envelope | None:
+def tagged(secrets: tuple[bytes, ...], payload: bytes) -> tuple[Envelope, bytes] | None:
     """An input envelope of at most 4 KiB, decoded, that carries a valid tag ``m`` of
-    the session's secret (`ldm.crypto.input_tag`); None for anything else. The core
-    decodes and checks it here, once: the worker takes it as it is."""
+    one of the session's secrets (`ldm.crypto.input_tag`), with that secret; None for
+    anything else. The core decodes and checks it here, once: the worker takes it as it
+    is."""
     if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:
         return None
     try:
         env = Envelope.model_validate_json(payload)
     except ValidationError:
         return None
+    secret = tag_secret(env, secrets)
+    return None if secret is None else (env, secret)
+
+
+def tag_secret(env: Envelope, secrets: tuple[bytes, ...] | list[bytes]) -> bytes | None:
+    """The secret among `secrets` whose tag `env` carries (None: none of them)."""
     if env.k is None or env.m is None:
         return None
-    if not hmac.compare_digest(env.m, input_tag(secret, env.c, env.t, env.k, env.d)):
-        return None
-    return env
+    for secret in reversed(secrets):  # the newest first: the participant's usual case
+        if hmac.compare_digest(env.m, input_tag(secret, env.c, env.t, env.k, env.d)):
+            return secret
+    return None
 
 
 @dataclass(frozen=True, slots=True)

@@ -38,7 +38,6 @@ forwards the envelope bytes it received (the user core drops the tag first).
 
 from __future__ import annotations
 
-import hmac
 import json
 import logging
 import secrets
@@ -61,11 +60,19 @@ from ldm.core.admission import (
     Limits,
     SessionKeys,
     request_like,
+    tag_secret,
     tagged,
 )
-from ldm.core.state import Pseudonym, Route, ServiceEntry, SessionState, new_pseudonym
+from ldm.core.state import (
+    Pseudonym,
+    Route,
+    ServiceEntry,
+    SessionSecret,
+    SessionState,
+    new_pseudonym,
+)
 from ldm.ops.hops import Hops
-from ldm.security.crypto import KeyPair, input_tag
+from ldm.security.crypto import KeyPair
 from ldm.security.identity import SigningKey, verify
 from ldm.security.trust import Trust
 from ldm.transport.intake import FairQueue
@@ -93,6 +100,15 @@ log = logging.getLogger(__name__)
 _CLUSTER = "cluster"
 _BACKBONE = "backbone"
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
+_MAX_SECRETS = 4  # grant secrets kept per session (`Core._grant_secret`)
+_UNREACHABLE = 1.0
+"""s: a backbone broker unreachable this long fails QoS 1/2 input for other clusters'
+services at once (``unavailable``), rather than after its timeout."""
+_CLEAR_RATE = 1000.0  # clearings a second of participant topics that are no session's
+_REKEY_SLACK = 0.1
+"""A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
+from sending its first input under the current key, the core from its arrival, and
+the two trips may differ (`Session.rotate`)."""
 _TOKEN = topics.TOKEN_PATTERN
 _ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
     Announcement | Withdrawal
@@ -133,6 +149,9 @@ class CoreStats:
     rejected_clock: int = 0
     rejected_rekey: int = 0
     """Input under a new ephemeral key too soon after the last one (answered ``rate_limited``)."""
+    rejected_unavailable: int = 0
+    """Input for another cluster's service while the backbone broker is unreachable
+    (`Core._backbone_problem`; answered ``unavailable``)."""
     granted: int = 0
     answered_nosession: int = 0
     """Input or requests for a session the core does not hold (answered ``nosession``)."""
@@ -144,7 +163,10 @@ class CoreStats:
     """Announcements, withdrawals and core statuses taken (valid, fresh), and this
     core's own service list seen back from the broker."""
     dropped_untrusted: int = 0
-    """Announcements not signed by a pinned or endorsed identity (with trust set)."""
+    """Announcements not signed by a pinned or endorsed identity, or bound to no
+    cluster (with trust set)."""
+    dropped_elsewhere: int = 0
+    """Announcements signed for another cluster than the one they came from (replays)."""
     repaired_list: int = 0
     """Service lists on the cluster that were not this core's own, replaced by it."""
     dropped_unauthentic: int = 0
@@ -188,12 +210,16 @@ class Core(Worker[Event]):
         """(client, service, c) of input charged to its session in the last ``max_age``,
         oldest first: a replay of one is not the session's (intake, under ``_guard``)."""
         self._next_sweep = time.time() + config.retain_sweep
+        self._clears = Bucket(_CLEAR_RATE, time.time())  # `_clear`, under ``_guard``
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
         self.hops: Hops | None = None
         """Set to note when each input passes this core (`ldm.hops`; `laas bench`)."""
         self._services: dict[str, ServiceEntry] = {}
+        self._latest: dict[str, tuple[str | None, float, float]] = {}
+        """Service -> (identity, issued, t) of the last announcement taken, also for a
+        while after it is gone: an older one is refused (`_forward_only`)."""
         self._sessions: dict[tuple[str, str], SessionState] = {}
         self._pseudonyms: dict[str, SessionState] = {}
         self._routes: dict[str, Route] = {}
@@ -201,6 +227,7 @@ class Core(Worker[Event]):
         self._published_list: list[ServiceDescription] | None = None
         self._list_payload = b""  # the retained list as this core last published it
         self._repairs = Bucket(_REPAIR_RATE, 0.0)
+        self._repair_owed = False  # a foreign list was seen and not yet replaced (`_repair`)
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
         self.trust = Trust(config.service_keys, config.anchors)
@@ -373,6 +400,8 @@ class Core(Worker[Event]):
         service = topic.service if topic.kind == "participant_input" else ""
         cfg = self.config
         now = time.time()
+        if topic.kind == "participant_up" or (service and service not in self._services):
+            self._clear(msg.topic, now)
         charge: Charge = "other"
         verified = True  # whether `charge` is known to be right
         envelope: Envelope | None = None  # decoded and its tag checked with `secret`
@@ -391,8 +420,7 @@ class Core(Worker[Event]):
                         now, cfg.rate, cfg.burst
                     )
                 if verified:
-                    own, envelope = self._owned(known, client, service, msg.payload, now)
-                    secret = known.secret if envelope is not None else None
+                    own, envelope, secret = self._owned(known, client, service, msg.payload, now)
                 else:
                     own = True
                 charge = "own" if own else "other"
@@ -421,32 +449,52 @@ class Core(Worker[Event]):
             if not self._intake.offer(item, client) and admitted:
                 self.overflowed()
 
+    def _clear(self, topic: str, now: float) -> None:
+        """Clear what may be retained on `topic`, a participant's topic that is no
+        session's (paho's thread), at once.
+
+        A live message does not show the retain flag, so retained junk on topics of a
+        participant's own (one participant made the broker hold 120 MB, which Mosquitto
+        never gives back: issue 25) would wait for the next sweep (``retain_sweep``).
+        The session topics are few per participant and swept; any other topic is
+        cleared as its message arrives, within ``_CLEAR_RATE`` a second, beyond which
+        the next sweep comes within a second.
+        """
+        with self._guard:
+            cleared = self._clears.take(now, _CLEAR_RATE, _CLEAR_RATE)
+            if not cleared:
+                self._next_sweep = min(self._next_sweep, now + 1.0)
+        if cleared:
+            self.cluster.publish(topic, b"", qos=0, retain=True)
+
     def _owned(
         self, known: SessionKeys, client: str, service: str, payload: bytes, now: float
-    ) -> tuple[bool, Envelope | None]:
+    ) -> tuple[bool, Envelope | None, bytes | None]:
         """Whether `payload` is its session's input, and new: tagged with the session's
         secret (under any key: a new key after a rotation is the session's too), fresh
         (``max_age``), and not a copy of one taken in the last ``max_age`` (an
         eavesdropper's replay on a broker without ACL). A session without a secret has
         nothing to check beyond its key (`SessionKeys.claims`). With it, the envelope
-        decoded and its tag checked (None when there is no secret or it is not its own)."""
-        if known.secret is None:
-            return True, None
-        env = tagged(known.secret, payload)
-        if env is None:
-            return False, None
+        decoded and the secret its tag was checked with (None when there is no secret
+        or it is not its own)."""
+        if not known.secrets:
+            return True, None, None
+        found = tagged(known.secrets, payload)
+        if found is None:
+            return False, None, None
+        env, secret = found
         c, t = env.c, env.t
         cfg = self.config
         if not now - cfg.max_age <= t <= now + cfg.max_clock_skew:
-            return False, None
+            return False, None, None
         with self._guard:
             recent = self._recent
             while recent and next(iter(recent.values())) < now - cfg.max_age:
                 recent.popitem(last=False)
             if (client, service, c) in recent:
-                return False, None
+                return False, None, None
             recent[(client, service, c)] = now
-        return True, env
+        return True, env, secret
 
     def _limits_of(self, client: str, now: float) -> Limits:
         """The client's budgets, new (full) if it has none (hold ``_guard``)."""
@@ -506,6 +554,7 @@ class Core(Worker[Event]):
             )
 
     def tick(self, now: float) -> None:
+        self._repair(now)
         self._expire_services(now)
         self._expire_sessions(now)
         for pseudonym, route in list(self._routes.items()):
@@ -673,10 +722,10 @@ class Core(Worker[Event]):
         and its secret, after each message that may have changed them."""
         session = self._sessions.get((client, service))
         known: SessionKeys | None = None
-        if session is not None and (session.current is not None or session.secret is not None):
+        if session is not None and (session.current is not None or session.secrets):
             current = [] if session.current is None else [session.current]
             keys = tuple((p.key.encode(), p.until) for p in (*current, *session.old))
-            known = SessionKeys(keys, session.secret)
+            known = SessionKeys(keys, tuple(s.value for s in session.secrets))
         if self._keys.get((client, service)) != known:  # only the worker writes it
             with self._guard:
                 if known is not None:
@@ -740,10 +789,13 @@ class Core(Worker[Event]):
         if ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        if not self._acceptable(ann):
+        if not self._bound(ann, self.name) or not self._acceptable(ann):
+            return
+        if not self._forward_only(ann):
             return
         self.stats.control += 1
-        svc = ServiceEntry(ann.service, self.name, ann.t + self.config.service_ttl, ann.sig)
+        expires = ann.t + self.config.service_ttl
+        svc = ServiceEntry(ann.service, self.name, expires, ann.sig, ann.cluster)
         self._services[service] = svc
         self._announce_backbone(service, svc)
         self._publish_list()
@@ -764,6 +816,66 @@ class Core(Worker[Event]):
             and goodbye.issued == desc.issued
             and verify(goodbye.identity, goodbye.signed_text(), goodbye.sig)
         )
+
+    def _bound(self, ann: Announcement, cluster: str) -> bool:
+        """Whether `ann` was announced in `cluster` (this core's name for a local
+        announcement, its ``origin`` for a backbone copy), as its signed ``cluster``
+        says (else counted). An announcement signed for another cluster is a replay:
+        taken here, the service would look local and every input would go to a topic
+        no one serves. With trust set, an unbound announcement is refused as well."""
+        if ann.cluster == cluster:
+            return True
+        if ann.cluster is not None:
+            self.stats.dropped_elsewhere += 1
+            log.warning(
+                "%s: announcement of %s made for cluster %s, not %s, dropped (a replay)",
+                self.name,
+                ann.service.name,
+                ann.cluster,
+                cluster,
+                extra={"event": "announcement_elsewhere"},
+            )
+            return False
+        if self.trust.open:
+            return True
+        self.stats.dropped_untrusted += 1
+        log.warning(
+            "%s: announcement of %s names no cluster, dropped: the provider has not read "
+            "this cluster's service list (let it read ldm/services, or set "
+            "ProviderConfig.cluster to %r)",
+            self.name,
+            ann.service.name,
+            cluster,
+            extra={"event": "announcement_unbound"},
+        )
+        return False
+
+    def _forward_only(self, ann: Announcement) -> bool:
+        """Whether `ann` is not older than the last announcement taken for its service
+        under the same identity (else counted as stale).
+
+        Order: (``issued``, ``t``). A replayed announcement of a withdrawn or replaced
+        key is genuine and fresh (within ``service_ttl``), so only its order gives it
+        away: taken, it put a dead provider's key back in the list (issue 25). The same
+        announcement again is taken while its service is listed (a redelivery), never
+        once it is gone. What was last taken is kept ``service_ttl`` after it was made,
+        after which a replay of it is stale anyway (`_expire_services`).
+        """
+        desc = ann.service
+        last = self._latest.get(desc.name)
+        if last is not None and last[0] == desc.identity:
+            new, old = (desc.issued, ann.t), (last[1], last[2])
+            if new < old or (new == old and desc.name not in self._services):
+                self.stats.dropped_stale += 1
+                log.info(
+                    "%s: an older announcement of %s dropped (a replay)",
+                    self.name,
+                    desc.name,
+                    extra={"event": "announcement_older"},
+                )
+                return False
+        self._latest[desc.name] = (desc.identity, desc.issued, ann.t)
+        return True
 
     def _acceptable(self, ann: Announcement) -> bool:
         """Fresh, not from the future, and signed by a trusted identity (else counted).
@@ -800,7 +912,9 @@ class Core(Worker[Event]):
         if self.backbone is None:
             return
         stamp = svc.expires - self.config.service_ttl
-        ann = Announcement(service=svc.description, t=stamp, origin=self.name, sig=svc.sig)
+        ann = Announcement(
+            service=svc.description, t=stamp, origin=self.name, sig=svc.sig, cluster=svc.cluster
+        )
         self.backbone.publish(
             topics.bb_announce(service), ann.model_dump_json().encode(), qos=1, retain=True
         )
@@ -816,14 +930,17 @@ class Core(Worker[Event]):
         if ann.origin is None or ann.service.name != service:
             self.stats.dropped_invalid += 1
             return
-        if not self._acceptable(ann):
+        if not self._bound(ann, ann.origin) or not self._acceptable(ann):
+            return
+        if not self._forward_only(ann):
             return
         self.stats.control += 1
         current = self._services.get(service)
         if ann.origin == self.name or (current is not None and current.origin == self.name):
             return  # our own, back from the backbone; or a local provider wins over a remote one
         expires = ann.t + self.config.service_ttl
-        self._services[service] = ServiceEntry(ann.service, ann.origin, expires, ann.sig)
+        entry = ServiceEntry(ann.service, ann.origin, expires, ann.sig, ann.cluster)
+        self._services[service] = entry
         self._publish_list()
 
     def _remove_service(self, service: str) -> None:
@@ -842,13 +959,19 @@ class Core(Worker[Event]):
     def _expire_services(self, now: float) -> None:
         for name in [n for n, s in self._services.items() if s.expires <= now]:
             self._remove_service(name)
+        ttl = self.config.service_ttl
+        for name in [n for n, last in self._latest.items() if last[2] + ttl <= now]:
+            if name not in self._services:
+                del self._latest[name]
 
     def _publish_list(self) -> None:
         services = sorted((s.description for s in self._services.values()), key=lambda d: d.name)
         if services == self._published_list:
             return
         self._published_list = services
-        listing = ServiceList(t=time.time(), services=services, core=self.identity.public)
+        listing = ServiceList(
+            t=time.time(), services=services, core=self.identity.public, cluster=self.name
+        )
         listing = listing.model_copy(update={"sig": self.identity.sign(listing.signed_text())})
         self._list_payload = listing.model_dump_json().encode()
         self.cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)
@@ -857,14 +980,25 @@ class Core(Worker[Event]):
         """The retained list on the cluster must be this core's: if not, publish it again.
 
         Anyone who can write ``ldm/services`` (a broker without ACL) could replace it;
-        the core sees the change one broker round trip later and puts its own back, so
-        a tampered list stands for milliseconds, not until the next change.
+        the core sees the change one broker round trip later and puts its own back.
+        Repairs are bounded (``_REPAIR_RATE`` a second, so two cores on one broker
+        cannot loop fast), and one the bucket cannot pay for now is owed, not skipped:
+        `_repair` pays it from ``tick`` as soon as the bucket allows, so the last list
+        of any burst is repaired within 1 / ``_REPAIR_RATE`` s plus a tick.
         """
         if payload == self._list_payload or self._published_list is None:
+            if payload == self._list_payload:
+                self._repair_owed = False  # ours is back: nothing after it is owed
             self.stats.control += 1  # our own, or before we published (it follows)
             return
         self.stats.repaired_list += 1
-        if self._repairs.take(time.time(), _REPAIR_RATE, _REPAIR_RATE):
+        self._repair_owed = True
+        self._repair(time.time())
+
+    def _repair(self, now: float) -> None:
+        """Publish this core's list again if a repair is owed and the bucket pays."""
+        if self._repair_owed and self._repairs.take(now, _REPAIR_RATE, _REPAIR_RATE):
+            self._repair_owed = False
             log.warning(
                 "%s: the service list on the cluster was not ours; repaired",
                 self.name,
@@ -905,9 +1039,9 @@ class Core(Worker[Event]):
             return
         cfg = self.config
         auth_key = None
-        if req.k is not None:  # the latest grant's secret is the session's
+        if req.k is not None:
             ours = KeyPair()
-            session.secret = ours.session_secret(req.k)
+            self._grant_secret(session, ours.session_secret(req.k), now)
             auth_key = ours.public
         grant = SessionGrant(
             service=svc.description,
@@ -925,6 +1059,25 @@ class Core(Worker[Event]):
         self.stats.granted += 1
         session.last_grant = SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant)
         self._notify(client, session.last_grant)
+
+    @staticmethod
+    def _grant_secret(session: SessionState, secret: bytes, now: float) -> None:
+        """Add a grant's secret to the session's, keeping those before it.
+
+        On a broker without ACL anyone can send a well-formed request on a participant's
+        topic; had its secret replaced the session's, the participant's correctly tagged
+        input would be dropped until its request timed out (issue 25: one forged request
+        every 2 s left 22-26 % answered). So the secrets in use stay: at most
+        ``_MAX_SECRETS`` are kept, and the one dropped to make room is the oldest never
+        used by tagged input, else the least recently used. A forged request's secret is
+        used only by its forger's tagged input: see docs/security.md for what remains.
+        """
+        held = session.secrets
+        held.append(SessionSecret(secret, now))
+        if len(held) > _MAX_SECRETS:
+            unused = [s for s in held[:-1] if s.used == 0.0]
+            victim = unused[0] if unused else min(held[:-1], key=lambda s: s.used)
+            held.remove(victim)
 
     def _stale(self, env: Envelope) -> bool:
         if time.time() - env.t > self.config.max_age:
@@ -960,16 +1113,7 @@ class Core(Worker[Event]):
             self.stats.answered_nosession += 1
             self._answer(charge, client, SessionNotice(kind="nosession", service=service, c=env.c))
             return True
-        if (
-            session.secret is not None
-            and session.secret is not checked
-            and (
-                env.m is None
-                or not hmac.compare_digest(
-                    env.m, input_tag(session.secret, env.c, env.t, env.k, env.d)
-                )
-            )
-        ):
+        if session.secrets and not self._authentic(session, env, checked):
             self.stats.dropped_unauthentic += 1
             return False
         svc = self._services.get(service)
@@ -1007,6 +1151,14 @@ class Core(Worker[Event]):
                 qos,
             )
         elif self.backbone is not None:
+            problem = self._backbone_problem(now, service)
+            if problem is not None:
+                self.stats.rejected_unavailable += 1
+                # Answered whatever the notice bucket holds: the input is authentic (its
+                # tag was checked) and paid for, and an unanswered one would be lost
+                # silently until it times out.
+                self._reject(charge, client, service, "unavailable", problem, c=env.c, paid=True)
+                return session.current is not before
             self._outbox.add(
                 self.backbone,
                 topics.bb_input_batch(svc.origin, service, self.name),
@@ -1020,6 +1172,38 @@ class Core(Worker[Event]):
             return False
         self.stats.forwarded_in += 1
         return session.current is not before
+
+    @staticmethod
+    def _authentic(session: SessionState, env: Envelope, checked: bytes | None) -> bool:
+        """Whether `env` is tagged with one of the session's secrets (`checked`: the one
+        intake checked it with, taken as it is while the session still holds it); the
+        secret is then marked used, which keeps it when a new grant comes."""
+        held = [s.value for s in session.secrets]
+        secret = checked if checked is not None and checked in held else tag_secret(env, held)
+        if secret is None:
+            return False
+        for s in session.secrets:
+            if s.value is secret or s.value == secret:
+                s.used = time.time()
+        return True
+
+    def _backbone_problem(self, now: float, service: str) -> str | None:
+        """Why input for `service`, on another cluster, cannot leave now: the backbone
+        broker is unreachable (at QoS 0, which the transport does not hold, at once; at
+        QoS 1/2, which it holds for the reconnect, after ``_UNREACHABLE`` s). None when
+        it can. (A broker that is connected but slow to acknowledge, as NATS while it
+        elects leaders, still gets QoS 1/2 input: it is stored and delivered late.)"""
+        backbone = self.backbone
+        if backbone is None:
+            return None
+        down = backbone.down_since
+        if down is None or (self.config.data_qos > 0 and now - down < _UNREACHABLE):
+            return None
+        return (
+            f"service {service!r} is in another cluster and this core's backbone broker "
+            f"has been unreachable for {now - down:.1f} s ({backbone.problem}): nothing "
+            "reaches it now; send again later"
+        )
 
     def _pseudonym_for(
         self, session: SessionState, key: str, service_key: str, now: float
@@ -1039,7 +1223,7 @@ class Core(Worker[Event]):
         if (
             current is not None
             and current.service_key == service_key
-            and now - current.created < self.config.rekey_interval
+            and now - current.created < self.config.rekey_interval * (1.0 - _REKEY_SLACK)
         ):
             return None
         fresh = Pseudonym(new_pseudonym(), key, now, service_key)

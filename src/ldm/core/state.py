@@ -9,7 +9,14 @@ from dataclasses import dataclass, field
 
 from ldm.wire.messages import ServiceDescription, SessionNotice
 
-__all__ = ["Pseudonym", "Route", "ServiceEntry", "SessionState", "new_pseudonym"]
+__all__ = [
+    "Pseudonym",
+    "Route",
+    "ServiceEntry",
+    "SessionSecret",
+    "SessionState",
+    "new_pseudonym",
+]
 
 
 def new_pseudonym() -> str:
@@ -23,6 +30,7 @@ class ServiceEntry:
     origin: str
     expires: float
     sig: str | None = None  # the announcement's signature, passed on to the backbone
+    cluster: str | None = None  # the cluster the signature binds it to, passed on too
 
 
 @dataclass(slots=True)
@@ -35,6 +43,15 @@ class Pseudonym:
 
 
 @dataclass(slots=True)
+class SessionSecret:
+    """A secret one grant shared: input tagged with it is the session's."""
+
+    value: bytes
+    made: float
+    used: float = 0.0  # when authentic input last came tagged with it (0: never)
+
+
+@dataclass(slots=True)
 class SessionState:
     client: str
     service: str
@@ -42,7 +59,8 @@ class SessionState:
     current: Pseudonym | None = None
     old: list[Pseudonym] = field(default_factory=list)
     next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
-    secret: bytes | None = None  # shared with the participant by the latest grant
+    secrets: list[SessionSecret] = field(default_factory=list)
+    """Shared with the participant by recent grants, newest last (`Core._grant_secret`)."""
     last_grant: SessionNotice | None = None  # sent again, unchanged, for a duplicate request
 
 

@@ -92,11 +92,13 @@ CORE_OUTCOMES: dict[str, tuple[str, str]] = {
     "rejected_size": ("rejected", "too_large"),
     "rejected_clock": ("rejected", "clock"),
     "rejected_rekey": ("rejected", "rekey"),
+    "rejected_unavailable": ("rejected", "unavailable"),
     "dropped_stale": ("dropped", "stale"),
     "dropped_unroutable": ("dropped", "unroutable"),
     "dropped_invalid": ("dropped", "invalid"),
     "dropped_overload": ("dropped", "overload"),
     "dropped_untrusted": ("dropped", "untrusted"),
+    "dropped_elsewhere": ("dropped", "elsewhere"),
     "dropped_unauthentic": ("dropped", "unauthentic"),
     "dropped_retained": ("dropped", "retained"),
 }
@@ -129,6 +131,7 @@ PROVIDER_INPUTS: dict[str, str] = {
     "dropped_oversize": "oversize",
     "dropped_overload": "overload",
     "dropped_replay": "replay",
+    "answered_again": "again",
 }
 """`ProviderStats` field -> outcome of ``ldm_provider_inputs_total``."""
 

@@ -36,12 +36,19 @@ from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
 from ldm.ops.hops import Hops
 from ldm.security.crypto import KeyPair, SessionCipher, aad
-from ldm.security.identity import SigningKey
+from ldm.security.identity import SigningKey, verify
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
 from ldm.wire.batch import Outbox
-from ldm.wire.messages import Announcement, Envelope, ServiceDescription, ServiceSpec, Withdrawal
+from ldm.wire.messages import (
+    Announcement,
+    Envelope,
+    ServiceDescription,
+    ServiceList,
+    ServiceSpec,
+    Withdrawal,
+)
 
 __all__ = ["BatchHandler", "Handler", "Provider", "ProviderStats", "Request"]
 
@@ -76,7 +83,12 @@ class ProviderStats:
     dropped_overload: int = 0
     """Input dropped on arrival because ``max_queue`` inputs were already waiting."""
     dropped_replay: int = 0
-    """Input whose correlation id was already seen under its key within ``max_age``."""
+    """Input whose correlation id was already seen under its key within ``max_age``, and
+    not answered yet (or no longer remembered)."""
+    answered_again: int = 0
+    """Input whose correlation id was already answered under its key within ``max_age``:
+    a participant's retry (``ParticipantConfig.retry_after``), answered with the same
+    reply again, the handler not called twice."""
     handler_errors: int = 0
     """The handler raised, or its reply could not be encoded or sent."""
     reply_batches: int = 0
@@ -84,6 +96,7 @@ class ProviderStats:
 
 
 _REPLAY_IDS = 1024  # correlation ids remembered per participant key (within max_age)
+_ANSWERS = 64  # replies remembered per participant key, for its retries (within max_age)
 
 
 @dataclass(slots=True)
@@ -92,6 +105,16 @@ class _Peer:
 
     cipher: SessionCipher
     seen: dict[str, float] = field(default_factory=dict)
+    answers: OrderedDict[str, tuple[bytes, float]] = field(default_factory=OrderedDict)
+    """Correlation id -> the sealed reply sent to it and when, newest last: a retry of
+    the same input is answered with the same bytes (idempotent), not handled again."""
+
+    def answered(self, c: str, sealed: bytes, now: float, oldest: float) -> None:
+        """Remember the reply to `c` (at most ``_ANSWERS``, none older than `oldest`)."""
+        answers = self.answers
+        answers[c] = (sealed, now)
+        while answers and (len(answers) > _ANSWERS or next(iter(answers.values()))[1] < oldest):
+            answers.popitem(last=False)
 
     def replayed(self, c: str, t: float, oldest: float) -> bool:
         """True if ``c`` came before; else remember it (ids older than ``oldest`` go)."""
@@ -111,6 +134,8 @@ class _Reply:
 
     cipher: SessionCipher
     qos: int
+    peer: _Peer | None = None
+    """The participant key's record, which remembers the replies for retries."""
 
 
 class Provider(Worker[Event]):
@@ -183,6 +208,11 @@ class Provider(Worker[Event]):
         self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
         self._batch_topic = topics.provider_input_batch(spec.name)
         self.transport.subscribe(self._batch_topic, qos)
+        self.cluster = config.cluster
+        """The core's name every announcement is signed for (`Announcement.cluster`);
+        None until the cluster's service list names it."""
+        if self.cluster is None:
+            self.transport.subscribe(topics.SERVICES, 1)
 
     @classmethod
     def create(
@@ -243,6 +273,9 @@ class Provider(Worker[Event]):
     def sink(self, item: Event) -> None:
         """The transport's sink (paho's thread): a batch is cut into its envelopes, each
         queued as the single message it stands for; a malformed line is counted."""
+        if isinstance(item, Message) and item.topic == topics.SERVICES:
+            self._service_list(item.payload)
+            return
         if isinstance(item, Message) and item.topic == self._batch_topic:
             entries, bad = batch.decode(item.payload)
             if bad:
@@ -253,6 +286,25 @@ class Provider(Worker[Event]):
                 self._take(Message(topic, envelope, item.qos, False, item.source))
             return
         self._take(item)
+
+    def _service_list(self, payload: bytes) -> None:
+        """Learn the cluster's name from its core's list (paho's thread): signed by the
+        pinned ``core_key`` if set, else the latest list that names one. A new name is
+        announced at the next tick."""
+        if not payload or len(payload) > self.config.max_payload * 16:
+            return
+        try:
+            listing = ServiceList.model_validate_json(payload)
+        except ValidationError:
+            return
+        key = self.config.core_key
+        if listing.cluster is None or (
+            key is not None and not verify(key, listing.signed_text(), listing.sig)
+        ):
+            return
+        if listing.cluster != self.cluster:
+            self.cluster = listing.cluster
+            self._next_announce = 0.0
 
     def _take(self, item: Event) -> None:
         if self.hops is not None and isinstance(item, Message):
@@ -272,7 +324,7 @@ class Provider(Worker[Event]):
             if self._batch_handler is None:
                 for item in items:
                     if isinstance(item, Connected):
-                        self._announce(time.time())
+                        self._connected(time.time())
                     else:
                         self._input(item)
                 return
@@ -281,7 +333,7 @@ class Provider(Worker[Event]):
                 if isinstance(item, Connected):
                     self._inputs(run)
                     run = []
-                    self._announce(time.time())
+                    self._connected(time.time())
                 else:
                     run.append(item)
             self._inputs(run)
@@ -293,9 +345,17 @@ class Provider(Worker[Event]):
         if now >= self._next_announce and self.transport.connected:
             self._announce(now)
 
+    def _connected(self, now: float) -> None:
+        """Announce on (re)connecting; not knowing the cluster yet, wait up to a second
+        for its retained list first (it names the cluster: `_service_list`)."""
+        if self.cluster is None:
+            self._next_announce = now + min(1.0, self.config.announce_interval)
+        else:
+            self._announce(now)
+
     def _announce(self, now: float) -> None:
         self._next_announce = now + self.config.announce_interval
-        ann = Announcement(service=self.description, t=now)
+        ann = Announcement(service=self.description, t=now, cluster=self.cluster)
         ann = ann.model_copy(update={"sig": self.identity.sign(ann.signed_text())})
         self.transport.publish(
             topics.announce(self.name), ann.model_dump_json().encode(), qos=1, retain=True
@@ -392,11 +452,22 @@ class Provider(Worker[Event]):
             self.stats.dropped_invalid += 1
             return None
         if peer.replayed(env.c, env.t, now - self.config.max_age):
-            self.stats.dropped_replay += 1
+            with self._count:
+                again = peer.answers.get(env.c)
+            if again is None or now - again[1] > self.config.max_age:
+                self.stats.dropped_replay += 1
+                return None
+            # A retry (or a broker's duplicate) of an input answered lately: the same
+            # reply again, so a reply lost on the way costs the participant one retry.
+            qos = msg.qos if self.config.data_qos is None else self.config.data_qos
+            topic = topics.provider_reply(self.name, pseudonym)
+            batch_topic = topics.provider_reply_batch(self.name)
+            self._outbox.add(self.transport, batch_topic, topic, pseudonym, again[0], qos)
+            self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
         qos = msg.qos if self.config.data_qos is None else self.config.data_qos
-        route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos)
+        route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos, peer)
         self._by_pseudonym.move_to_end(pseudonym)
         if len(self._by_pseudonym) > self.config.cipher_cache:
             self._by_pseudonym.popitem(last=False)
@@ -437,3 +508,6 @@ class Provider(Worker[Event]):
             self._outbox.add(self.transport, batch_topic, topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1
+            if route.peer is not None:
+                sent = time.time()
+                route.peer.answered(correlation_id, sealed, sent, sent - self.config.max_age)

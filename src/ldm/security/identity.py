@@ -15,7 +15,8 @@ Every signed text starts with a domain label (``ldm-service/1|`` …), so a sign
 made for one purpose is never valid for another:
 
     description  Ed25519(identity, "ldm-service/1|" + JSON of all but the signature fields)
-    announcement Ed25519(identity, "ldm-announce/1|" + description.signature + "|" + repr(t))
+    announcement Ed25519(identity, "ldm-announce/2|" + description.signature + "|" + repr(t)
+                                   + "|" + cluster)   ("ldm-announce/1|", no cluster: unbound)
     endorsement  Ed25519(anchor,   "ldm-endorse/1|" + service + "|" + identity)
     notice       Ed25519(core,     "ldm-notice/1|" + JSON of all but sig)
     service list Ed25519(core,     "ldm-list/1|" + JSON of all but sig)

@@ -189,6 +189,14 @@ class Transport:
         self._asked: dict[int, list[tuple[str, int]]] = {}  # SUBSCRIBE mid -> its filters
         self.refusal: str | None = None
         """Why the broker last refused a connection (its CONNACK), if it did."""
+        self.down_since: float | None = None
+        """When (``time.time()``) the connection was lost, or the first one asked for,
+        while none is acknowledged; None while connected (or before `start`)."""
+        self.problem = "not connected yet"
+        """Why there is no connection, as paho or the broker last said."""
+        self._unacked: deque[tuple[mqtt.MQTTMessageInfo, float]] = deque(maxlen=_MAX_QUEUED)
+        """QoS 1/2 publishes and when they were sent, oldest first, until the broker
+        acknowledged them (`unacked_for`); under ``_lock``."""
         client = _client(settings, client_id)
         if will is not None:
             client.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
@@ -235,6 +243,7 @@ class Transport:
                 "%s: %s:%d refused the connection: %s%s", self.name, *self.address, reason, hint
             )
             self.refusal += hint
+            self.problem = f"{self.address[0]}:{self.address[1]} refused it: {self.refusal}"
             return
         if self._loop is not None:  # the loop's thread: the back-off starts over
             self._loop._delay[self] = self.settings.reconnect_min
@@ -248,11 +257,16 @@ class Transport:
             for topic, payload, qos, retain in held:
                 client.publish(topic, payload, qos=qos, retain=retain)
             self._connected.set()
+            self.down_since = None
         self._sink(Connected(self.name))
 
     def _on_disconnect(self, _c: mqtt.Client, _u: Any, _f: Any, reason: Any, _p: Any) -> None:
         if self._connected.is_set():
             self.disconnects += 1
+            self.down_since = time.time()
+            self.problem = f"{self.address[0]}:{self.address[1]} disconnected: {reason}"
+        elif self.refusal is None:
+            self.problem = f"{self.address[0]}:{self.address[1]}: {reason}"
         self._connected.clear()
         if self._started:
             log.info("%s: disconnected (%s), reconnecting with back-off", self.name, reason)
@@ -347,6 +361,8 @@ class Transport:
     def start(self, timeout: float | None = None) -> None:
         """Connect in the background; with a timeout, wait for the first connection."""
         self._started = True
+        if self.down_since is None and not self.connected:
+            self.down_since = time.time()
         self._client.connect_async(self.settings.host, self.settings.port, self.settings.keepalive)
         if self._loop is not None:
             self._loop._add(self)
@@ -381,11 +397,28 @@ class Transport:
                 ok = info.rc == mqtt.MQTT_ERR_SUCCESS or (
                     qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN  # paho re-sends it
                 )
+                if ok and qos > 0:
+                    self._unacked.append((info, time.time()))
+                    self._drop_acked()
                 return info if ok else None
             if qos == 0 or len(self._held) >= _MAX_QUEUED:
                 return None
             self._held.append((topic, payload, qos, retain))
             return True
+
+    def _drop_acked(self) -> None:
+        """Forget the acknowledged publishes at the head of ``_unacked`` (hold ``_lock``)."""
+        unacked = self._unacked
+        while unacked and unacked[0][0].is_published():
+            unacked.popleft()
+
+    def unacked_for(self, now: float) -> float:
+        """How long the oldest QoS 1/2 publish not yet acknowledged by the broker has
+        waited (0: none waits). A broker that takes the connection but cannot store
+        messages (a NATS cluster without JetStream quorum) shows here first."""
+        with self._lock:
+            self._drop_acked()
+            return now - self._unacked[0][1] if self._unacked else 0.0
 
     def publish_and_wait(
         self, topic: str, payload: bytes, qos: int = 1, retain: bool = False, timeout: float = 2.0

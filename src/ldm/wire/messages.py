@@ -93,16 +93,25 @@ class ServiceDescription(ServiceSpec):
 
 
 class Announcement(_Wire):
-    """Provider -> core (``origin`` unset) and core -> cores (``origin`` = service core)."""
+    """Provider -> core (``origin`` unset) and core -> cores (``origin`` = service core).
+
+    ``cluster`` is the name of the core of the cluster the provider announced in, and
+    signed: a genuine announcement replayed on another cluster's broker is not that
+    cluster's service, and a backbone copy must come from that core (``origin``).
+    """
 
     service: ServiceDescription
     t: float
     origin: str | None = Field(default=None, pattern=_NAME)
     sig: str | None = Field(default=None, pattern=_B64, max_length=128)
-    """The service identity's signature of the description's signature and ``t``."""
+    """The service identity's signature of the description's signature, ``t`` and
+    ``cluster``."""
+    cluster: str | None = Field(default=None, pattern=_NAME)
 
     def signed_text(self) -> bytes:
-        return f"ldm-announce/1|{self.service.signature}|{self.t!r}".encode()
+        if self.cluster is None:  # a provider that does not know its cluster (yet)
+            return f"ldm-announce/1|{self.service.signature}|{self.t!r}".encode()
+        return f"ldm-announce/2|{self.service.signature}|{self.t!r}|{self.cluster}".encode()
 
 
 class Withdrawal(_Wire):
@@ -129,6 +138,8 @@ class ServiceList(_Wire):
     core: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
     """The publishing core's Ed25519 public key; ``sig`` is its signature."""
     sig: str | None = Field(default=None, pattern=_B64, max_length=128)
+    cluster: str | None = Field(default=None, pattern=_NAME)
+    """The publishing core's name: a provider binds its announcements to it."""
 
     def signed_text(self) -> bytes:
         return canonical("ldm-list/1", self.model_dump(mode="json", exclude={"sig"}))
@@ -170,7 +181,7 @@ class SessionGrant(_Wire):
     two the participant derives the secret with which it tags its input (``m``)."""
 
 
-Rejection = Literal["invalid", "too_large", "rate_limited", "clock"]
+Rejection = Literal["invalid", "too_large", "rate_limited", "clock", "unavailable"]
 
 
 class SessionNotice(_Wire):

@@ -25,10 +25,12 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    SessionSilent,
     TrustError,
 )
 from ldm.local.embedded import BrokerProcess, EmbeddedBroker
 from ldm.provider.provider import BatchHandler, Handler, Provider, ProviderStats, Request
+from ldm.rotation import RotationPolicy
 from ldm.security.crypto import KeyPair
 from ldm.security.identity import SigningKey
 from ldm.security.trust import Trust
@@ -56,6 +58,7 @@ __all__ = [
     "Request",
     "RequestRejected",
     "RequestTimeout",
+    "RotationPolicy",
     "RoutedSession",
     "ServiceDescription",
     "ServiceNotFound",
@@ -63,6 +66,7 @@ __all__ = [
     "Session",
     "SessionError",
     "SessionGrant",
+    "SessionSilent",
     "SigningKey",
     "Trust",
     "TrustError",

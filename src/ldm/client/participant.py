@@ -34,8 +34,10 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    SessionSilent,
     TrustError,
 )
+from ldm.rotation import RotationPolicy, Rotator
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
 from ldm.security.identity import verify
 from ldm.security.trust import Trust
@@ -112,7 +114,9 @@ class Session:
         self._pending: dict[str, _Pending] = {}
         self._lock = threading.Lock()
         self._secret = secret  # shared with the core by the grant; tags every input
-        self._rotated_at = time.time()
+        self._rotator = Rotator(
+            grant.rotation or RotationPolicy(), grant.rekey_interval, time.time()
+        )
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
 
@@ -125,8 +129,32 @@ class Session:
         """The current ephemeral key pair and its cipher with the service."""
         return self._keys
 
+    @property
+    def silent(self) -> bool:
+        """Keeping quiet after a change of pseudonym (the core's policy): input is not
+        sent now (`submit` fails with SessionSilent); answer the application yourself."""
+        return self._rotator.silent(time.time())
+
+    def moved(self, metres: float, speed: float) -> bool:
+        """Tell the library how far the participant moved since the last report and its
+        speed now (m, m/s): under the ``distance`` and ``stop`` strategies it changes the
+        key (and pseudonym) itself when they say so. True if it did. Nothing is sent."""
+        now = time.time()
+        return self._rotator.moved(metres, speed, now) and self.rotate(now)
+
     def submit(self, payload: Mapping[str, Any]) -> Future[Payload]:
-        """Send one input now; the future gets the service's reply."""
+        """Send one input now; the future gets the service's reply (or SessionSilent at
+        once, unsent, while the session keeps quiet after a change of pseudonym)."""
+        if self.silent:
+            future: Future[Payload] = Future()
+            until = self._rotator.silent_until - time.time()
+            future.set_exception(
+                SessionSilent(
+                    f"not sent: the session with {self.service.name!r} keeps quiet for "
+                    f"{until:.1f} s more after its change of pseudonym; answer locally"
+                )
+            )
+            return future
         c = _token()
         pending = _Pending(
             Future(), self._keys, json.dumps(payload, separators=(",", ":")).encode(), 0.0
@@ -166,6 +194,8 @@ class Session:
         k, secret = keys.pair.public, self._secret
         tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
         env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
+        if keys is self._keys:
+            self._rotator.used(pending.sent)
         if not self._participant.publish_input(self, env):
             self.fail(
                 c,
@@ -177,16 +207,18 @@ class Session:
 
     # --- called by its participant (the participant's worker thread) --------------------
 
-    def rotate(self, now: float) -> bool:
-        """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
+    def rotate(self, now: float, quiet: bool = True) -> bool:
+        """Start a new ephemeral key, at most once per ``rekey_interval`` (else False),
+        then keep quiet for the policy's silence (unless not `quiet`).
 
-        The core refuses a session's new key sooner than that, so a rotation more often,
-        asked by a replayed or forged notice, would only lock the session out.
+        The core refuses a session's new key sooner than that after the current key's
+        first input, so a rotation more often, asked by a replayed or forged notice,
+        would only lock the session out.
         """
-        if now - self._rotated_at < self.grant.rekey_interval:
+        if not self._rotator.may_change(now):
             return False
         self._keys = _Keys.new(self.grant.service)
-        self._rotated_at = now
+        self._rotator.changed(now, quiet)
         self.rotations += 1
         return True
 
@@ -201,12 +233,14 @@ class Session:
         changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
         self._secret = secret
+        self._rotator.policy = grant.rotation or RotationPolicy()
+        self._rotator.rekey_interval = grant.rekey_interval
         if changed:
             self._keys = _Keys.new(grant.service)
-            self._rotated_at = time.time()
+            self._rotator.changed(time.time(), quiet=False)
             self.rotations += 1
         else:
-            self.rotate(time.time())
+            self.rotate(time.time(), quiet=False)
         with self._lock:
             waiting, self._pending = list(self._pending.values()), {}
             resend = [(_token(), p) for p in waiting]

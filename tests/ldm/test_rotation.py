@@ -3,6 +3,7 @@ silence after a change, a change the participant decides; and the pure rules."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 import random
 import time
@@ -46,6 +47,10 @@ def _participant(url: str, name: str) -> Participant:
     p = Participant.create(url, client_id=name).start(timeout=5)
     assert wait_for(has_service(p, "echo"), 5), "echo never listed"
     return p
+
+
+def _all_done(futures: list[Future[dict[str, Any]]]) -> bool:
+    return all(f.done() for f in futures)
 
 
 def _first_seen(echo: EchoService, who: str) -> list[float]:
@@ -105,7 +110,7 @@ def test_a_silent_session_sends_nothing_after_its_change(
         while time.time() < end:
             futures.append(session.submit({"who": "cat", "i": len(futures)}))
             time.sleep(0.05)
-        assert wait_for(lambda fs=futures: all(f.done() for f in fs), 5)
+        assert wait_for(functools.partial(_all_done, futures), 5)
         silent = [f for f in futures if isinstance(f.exception(), SessionSilent)]
         answered = [f for f in futures if f.exception() is None]
         assert len(silent) + len(answered) == len(futures)

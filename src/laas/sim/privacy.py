@@ -21,7 +21,7 @@ and, with ``accuracy``, the lane accuracy of every fix's answer: the engine's (d
 the worker drives it: the service's inputs in time order under their pseudonyms, silent
 pseudonyms forgotten after the engine's ``track_timeout``), or, for a fix not sent
 because the participant kept quiet, the participant's own dead-reckoned answer
-(`dead_reckon`); against the same run without rotation, overall and in the 30 s around
+(`laas.deadreckon`); against the same run without rotation, overall and in the 30 s around
 each change.
 """
 
@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from laas.config import EngineConfig
+from laas.deadreckon import dead_reckon
 from laas.engine import Engine
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
@@ -57,7 +58,6 @@ __all__ = [
     "STRATEGIES",
     "Plan",
     "PrivacyRow",
-    "dead_reckon",
     "format_privacy",
     "privacy_run",
     "privacy_trace",
@@ -111,7 +111,7 @@ STRATEGIES: dict[str, Plan] = {
 """The strategies `laas privacy` compares (``distance`` and ``stop``: the core's period is
 their backstop, 6 min as C-ITS's longest)."""
 
-DEFAULT_STRATEGY = "periodic"
+DEFAULT_STRATEGY = "epoch60+silent20"
 """The LDM's default (`CoreConfig.rotation`), by name in `STRATEGIES`."""
 
 
@@ -175,20 +175,6 @@ def observations(hdmap: HdMap, trace: Trace, view: Sequence[str | None]) -> list
             Observation(p, m.timestamp / 1000.0, e, n, m.speed * math.sin(h), m.speed * math.cos(h))
         )
     return out
-
-
-def dead_reckon(
-    answer: CorrectedPosition, answered: GpsMeasurement, now: GpsMeasurement
-) -> CorrectedPosition:
-    """A participant's own answer to fix `now` while it keeps quiet: the correction of
-    its last answer (`answer` to fix `answered`) applied to `now`, on the same lane."""
-    return answer.model_copy(
-        update={
-            "timestamp": now.timestamp,
-            "latitude": now.latitude + (answer.latitude - answered.latitude),
-            "longitude": now.longitude + (answer.longitude - answered.longitude),
-        }
-    )
 
 
 def _answers(

@@ -12,10 +12,14 @@ last fix to b's first gives
     S_p  = 2 s_fix^2 + (s_v dt)^2 + (a dt^2 / 2)^2    its variance per axis
     S_v  = 2 s_v^2 + (a dt)^2
     D^2  = |r|^2 / S_p + |w|^2 / S_v                  Mahalanobis distance, 4 dof
+    L    = D^2 + 2 ln(S_p / S_p(1)) + 2 ln(S_v / S_v(1))   its negative log-likelihood,
+                                                      less that of a 1 s gap
 
-and the pair is a candidate when D^2 < ``GATE`` (the 3-sigma gate of 4 dof). All deaths
-and births are then joined at once by an optimal assignment (minimum total D^2, each
-death and each birth used at most once, "no link" costing ``GATE``), solved by
+and the pair is a candidate when D^2 < ``GATE`` (the 3-sigma gate of 4 dof), among the
+``CANDIDATES`` of the death's with the least L (the ln terms keep a far birth after a long
+gap from beating a near one after a short gap). All deaths and births are then joined at
+once by an optimal assignment: as many candidate pairs as possible (each death and each
+birth used at most once), and among those the least total L; solved by
 `scipy.optimize.linear_sum_assignment` on each connected group of candidates.
 """
 
@@ -30,17 +34,28 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from scipy.sparse import coo_matrix  # type: ignore[import-untyped]
 from scipy.sparse.csgraph import connected_components  # type: ignore[import-untyped]
 
-__all__ = ["ACCEL", "GATE", "MAX_GAP", "SIGMA_FIX", "SIGMA_SPEED", "Observation", "link"]
+__all__ = [
+    "ACCEL",
+    "CANDIDATES",
+    "GATE",
+    "MAX_GAP",
+    "NO_LINK",
+    "SIGMA_FIX",
+    "SIGMA_SPEED",
+    "Observation",
+    "link",
+]
 
-MAX_GAP = (
-    60.0  # s: twice the longest silence (ldm.rotation.MAX_SILENCE): the attacker knows the policy
-)
+MAX_GAP = 25.0  # s: the longest silence (ldm.rotation.MAX_SILENCE, public) and a margin
+CANDIDATES = 12  # births kept per death, the least L: a crowd's unlikely members never win
 SIGMA_FIX = 2.0  # m: a fix's own noise per axis (the error the receiver shares with the
 #                  next fix, common and bias, cancels in the residual)
 SIGMA_SPEED = 1.0  # m/s: a reported velocity's noise per axis
 ACCEL = 2.0  # m/s^2: the braking and turning the constant-velocity model leaves out (a
 #               car's firm braking); `link` takes others, `laas privacy` tries 0.5 as well
 GATE = 16.25  # chi-square of 4 dof at 99.73 % (3 sigma)
+NO_LINK = 1000.0  # a death or birth left alone: above any gated L (< GATE + the ln terms,
+#                   about 60 at MAX_GAP), so the assignment links all it can first
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,16 +96,24 @@ def _ends(observations: Sequence[Observation]) -> tuple[list[_End], list[_End]]:
 
 
 def _cost(d: _End, b: _End, accel: float) -> float:
-    """D^2 of death d continued into birth b (module docstring), inf outside the gate."""
+    """L of death d continued into birth b (module docstring), inf outside the gate."""
     dt = b.t - d.t
     if not 0.0 < dt <= MAX_GAP:
         return math.inf
     r = b.p - (d.p + d.v * dt)
     w = b.v - d.v
-    s_p = 2 * SIGMA_FIX**2 + (SIGMA_SPEED * dt) ** 2 + (accel * dt * dt / 2) ** 2
-    s_v = 2 * SIGMA_SPEED**2 + (accel * dt) ** 2
+    s_p, s_v = _variances(dt, accel)
     d2 = float(r @ r / s_p + w @ w / s_v)
-    return d2 if d2 < GATE else math.inf
+    if d2 >= GATE:
+        return math.inf
+    p1, v1 = _variances(1.0, accel)
+    return d2 + 2 * math.log(s_p / p1) + 2 * math.log(s_v / v1)
+
+
+def _variances(dt: float, accel: float) -> tuple[float, float]:
+    """S_p and S_v after a gap of dt s (module docstring)."""
+    s_p = 2 * SIGMA_FIX**2 + (SIGMA_SPEED * dt) ** 2 + (accel * dt * dt / 2) ** 2
+    return s_p, 2 * SIGMA_SPEED**2 + (accel * dt) ** 2
 
 
 def link(observations: Sequence[Observation], accel: float = ACCEL) -> dict[str, str]:
@@ -107,15 +130,18 @@ def link(observations: Sequence[Observation], accel: float = ACCEL) -> dict[str,
     for i, d in enumerate(deaths):
         lo = int(np.searchsorted(birth_t, d.t, side="right"))
         hi = int(np.searchsorted(birth_t, d.t + MAX_GAP, side="right"))
+        near = []
         for k in order[lo:hi]:
             b = births[k]
             if b.pseudonym == d.pseudonym:
                 continue
             c = _cost(d, b, accel)
             if c < math.inf:
-                rows.append(i)
-                cols.append(k)
-                costs.append(c)
+                near.append((c, k))
+        for c, k in sorted(near)[:CANDIDATES]:
+            rows.append(i)
+            cols.append(k)
+            costs.append(c)
     if not rows:
         return {}
     nd, nb = len(deaths), len(births)
@@ -132,16 +158,16 @@ def link(observations: Sequence[Observation], accel: float = ACCEL) -> dict[str,
         bi = {x: j for j, x in enumerate(bs)}
         m, n = len(ds), len(bs)
         # [[C, no-link of each death], [no-link of each birth, 0]]: (m + n) x (n + m);
-        # leaving a pair unlinked costs 2 GATE, so any gated pair beats no link at all
-        big = GATE * (m + n + 1)  # dearer than leaving everything unlinked
+        # leaving a pair unlinked costs 2 NO_LINK, more than any candidate pair's L
+        big = NO_LINK * 4 * (m + n + 1)  # dearer than leaving everything unlinked
         table = np.full((m + n, n + m), big)
         for r_, c_, c in edges:
             table[di[r_], bi[c_]] = c
-        table[np.arange(m), n + np.arange(m)] = GATE
-        table[m + np.arange(n), np.arange(n)] = GATE
+        table[np.arange(m), n + np.arange(m)] = NO_LINK
+        table[m + np.arange(n), np.arange(n)] = NO_LINK
         table[m:, n:] = 0.0
         ri, ci = linear_sum_assignment(table)
         for a, b in zip(ri, ci, strict=True):
-            if a < m and b < n and table[a, b] < GATE:
+            if a < m and b < n and table[a, b] < NO_LINK:
                 joins[births[bs[b]].pseudonym] = deaths[ds[a]].pseudonym
     return joins

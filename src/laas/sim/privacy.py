@@ -140,11 +140,11 @@ def service_view(trace: Trace, plan: Plan, seed: int = 0) -> list[str | None]:
         for i in idx:
             m = trace.fixes[i].measurement
             t = m.timestamp / 1000.0
-            if t >= core_next:  # the core's tick sends ``rotate``; the library obeys
-                core_next = next_rotation(policy.strategy, period, core_next)
-                if rotator.may_change(t):
+            while t >= core_next:  # the core's tick sent ``rotate``; the library obeys
+                notice, core_next = core_next, next_rotation(policy.strategy, period, core_next)
+                if rotator.may_change(notice):
                     key += 1
-                    rotator.changed(t)
+                    rotator.changed(notice)
             if last_t is not None and rotator.moved(m.speed * (t - last_t), m.speed, t):
                 key += 1
                 rotator.changed(t)

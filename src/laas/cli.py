@@ -739,7 +739,7 @@ def _add_offline(sub: Any) -> None:
     )
     p.add_argument(
         "--places",
-        default="ring,helsinki,karlsruhe,urban,arterial",
+        default="ring,helsinki,urban",
         help="maps the users roam: ring (a closed ring road), a bundled map, or a road family",
     )
     p.add_argument("--users", default="5,10,50,200", help="road users per run, comma-separated")
@@ -750,7 +750,7 @@ def _add_offline(sub: Any) -> None:
         "--accuracy-users",
         type=int,
         default=20,
-        help="also score the engine's accuracy on runs with this many users (0: never)",
+        help="also run this many users with the engine's accuracy scored (0: never)",
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_privacy)

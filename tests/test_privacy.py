@@ -5,7 +5,11 @@ from __future__ import annotations
 import math
 
 from laas.deadreckon import dead_reckon
+from laas.map.bundled import bundled_map
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, GpsMeasurement
+from laas.run.deployment import LocalDeployment
+from laas.run.participants import run_participants
 from laas.sim.privacy import (
     DEFAULT_STRATEGY,
     STRATEGIES,
@@ -13,6 +17,9 @@ from laas.sim.privacy import (
     privacy_trace,
     service_view,
 )
+from laas.sim.scenario import get_scenario, simulate
+from laas.sim.score import score
+from ldm import RotationPolicy
 
 DEFAULT_BOUND = 0.92
 """The default's re-linked share on the ring with 50 users for 300 s (measured 0.864 on
@@ -76,3 +83,18 @@ def test_a_silent_participant_dead_reckons_with_its_last_correction() -> None:
     own = dead_reckon(answer, fix, later)
     assert own.timestamp == 6000 and (own.segment, own.lane) == ("s", 1)
     assert math.isclose(own.latitude, 53.50002) and math.isclose(own.longitude, 10.00065)
+
+
+def test_live_participants_keep_quiet_and_answer_themselves() -> None:
+    """The Hamburg users through the three-broker deployment under epochs with silence:
+    every fix answered (the silent ones by the participant itself), no key refused."""
+    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    scenario = get_scenario("messe-hamburg")
+    trace = simulate(hdmap, scenario, scenario.errors, 0)
+    policy = RotationPolicy(strategy="epoch", silence=0.5)
+    with LocalDeployment(hdmap, rotation_period=2.0, rotation=policy) as deployment:
+        run = run_participants(deployment.user_url, trace, speedup=10.0, **deployment.trust)
+        stats = deployment.cores["user"].stats
+    assert run.answered == len(trace.fixes) and not run.errors
+    assert run.silent > 0 and stats.rotations >= 3 and stats.rejected_rekey == 0
+    assert score(hdmap, trace, run.answers).accuracy > 0.8

@@ -1,7 +1,7 @@
 """A participant's own answer while its session keeps quiet after a change of pseudonym.
 
 The LDM's rotation policy may ask a participant to send nothing for a few seconds after
-each change (`ldm.rotation`, ``silence``). A positioning client then answers itself: the
+each change (`ldm.wire.rotation`, ``silence``). A positioning client then answers itself: the
 correction of its last answer (the answer minus the fix it answered: mostly the common
 error, which drifts slowly) applied to its current fix, on the same lane.
 """

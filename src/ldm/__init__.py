@@ -30,11 +30,11 @@ from ldm.errors import (
 )
 from ldm.local.embedded import BrokerProcess, EmbeddedBroker
 from ldm.provider.provider import BatchHandler, Handler, Provider, ProviderStats, Request
-from ldm.rotation import RotationPolicy
 from ldm.security.crypto import KeyPair
 from ldm.security.identity import SigningKey
 from ldm.security.trust import Trust
 from ldm.wire.messages import ServiceDescription, ServiceSpec, SessionGrant
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = [
     "BatchHandler",

@@ -32,8 +32,8 @@ from ldm.local.embedded import EmbeddedBroker
 from ldm.ops.logs import LOG_FORMATS, configure
 from ldm.ops.metrics import Metrics, MetricsServer
 from ldm.ops.passwd import random_password, set_passwords
-from ldm.rotation import MAX_SILENCE, RotationPolicy, Strategy
 from ldm.security.identity import SigningKey, endorse
+from ldm.wire.rotation import MAX_SILENCE, RotationPolicy, Strategy
 
 __all__ = [
     "broker_settings",
@@ -109,7 +109,7 @@ def _parser() -> argparse.ArgumentParser:
         "--rotation",
         choices=get_args(Strategy),
         default=RotationPolicy().strategy,
-        help="who decides when pseudonyms change (docs/ldm.md, ldm.rotation; default "
+        help="who decides when pseudonyms change (docs/ldm.md, ldm.wire.rotation; default "
         f"{RotationPolicy().strategy})",
     )
     core.add_argument(

@@ -23,7 +23,7 @@ from pydantic import (
 )
 
 from ldm.errors import ConfigError
-from ldm.rotation import RotationPolicy
+from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
@@ -231,7 +231,7 @@ class CoreConfig(_Settings):
     rotation_period: float = Field(default=120.0, gt=0)
     rotation: RotationPolicy = Field(default_factory=RotationPolicy)
     """Who decides when a session's pseudonym changes, and the silence after a change
-    (`ldm.rotation`); sent to participants in each grant. ``rotation_period`` is the
+    (`ldm.wire.rotation`); sent to participants in each grant. ``rotation_period`` is the
     period (``periodic``, ``epoch``) or the longest a pseudonym lives (``distance``,
     ``stop``)."""
     grace: float = Field(default=5.0, ge=0)

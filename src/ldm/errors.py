@@ -65,7 +65,7 @@ class RequestRejected(SessionError):
 
 class SessionSilent(SessionError):
     """The session keeps quiet for a few seconds after a change of pseudonym (the core's
-    rotation policy, `ldm.rotation`): nothing was sent. Answer the application yourself
+    rotation policy, `ldm.wire.rotation`): nothing was sent. Answer the application yourself
     until ``Session.silent`` is False (a positioning client dead-reckons)."""
 
 

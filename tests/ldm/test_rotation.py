@@ -1,4 +1,4 @@
-"""Rotation strategies on a real broker (`ldm.rotation`): epochs on the shared clock,
+"""Rotation strategies on a real broker (`ldm.wire.rotation`): epochs on the shared clock,
 silence after a change, a change the participant decides; and the pure rules."""
 
 from __future__ import annotations
@@ -14,16 +14,10 @@ from typing import Any
 import pytest
 
 from ldm import ConfigError, Core, CoreConfig, Participant, Provider, SessionSilent
+from ldm.client.rotation import CITS_FIRST, CITS_GAP, CITS_MIN_DISTANCE, STOP_TIME, Rotator
+from ldm.core.rotation import next_rotation
 from ldm.local.brokers import RunningBroker, wait_for
-from ldm.rotation import (
-    CITS_FIRST,
-    CITS_GAP,
-    CITS_MIN_DISTANCE,
-    STOP_TIME,
-    RotationPolicy,
-    Rotator,
-    next_rotation,
-)
+from ldm.wire.rotation import RotationPolicy
 
 from .deployment import EchoService, echo_provider, has_service
 

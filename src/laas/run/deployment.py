@@ -33,8 +33,8 @@ from ldm import Core, Provider
 from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
 from ldm.ops.hops import Hops
 from ldm.ops.metrics import Metrics, MetricsServer
-from ldm.rotation import RotationPolicy
 from ldm.security.identity import SigningKey
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
 
@@ -90,7 +90,7 @@ class LocalDeployment:
         )
         self.rotation_period = rotation_period
         self.rotation = rotation or RotationPolicy()
-        """The user core's rotation strategy (`ldm.rotation`); the LDM's default if None."""
+        """The user core's rotation strategy (`ldm.wire.rotation`); the LDM's default if None."""
         self.data_qos = data_qos
         self.worker_process = worker_process
         self.brokers: dict[str, RunningBroker] = {}

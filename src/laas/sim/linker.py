@@ -46,7 +46,7 @@ __all__ = [
     "link",
 ]
 
-MAX_GAP = 25.0  # s: the longest silence (ldm.rotation.MAX_SILENCE, public) and a margin
+MAX_GAP = 25.0  # s: the longest silence (ldm.wire.rotation.MAX_SILENCE, public) and a margin
 CANDIDATES = 12  # births kept per death, the least L: a crowd's unlikely members never win
 SIGMA_FIX = 2.0  # m: a fix's own noise per axis (the error the receiver shares with the
 #                  next fix, common and bias, cancels in the residual)

@@ -2,7 +2,7 @@
 what each rotation strategy costs in accuracy (`laas privacy`).
 
 A run draws road users roaming a map (`laas.sim.roam`) for a while, simulates their
-fixes, and plays each rotation strategy of the LDM (`ldm.rotation`) over them exactly as
+fixes, and plays each rotation strategy of the LDM (`ldm.wire.rotation`) over them exactly as
 the core and the participant library would: the same `next_rotation` times the core's
 ``rotate`` notices, the same `Rotator` decides the participant's own changes and its
 silence, from the speed its receiver reports. What comes out is the service's view, one
@@ -50,8 +50,10 @@ from laas.sim.integrity import lane_right
 from laas.sim.linker import Observation, link
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import Trace, simulate
+from ldm.client.rotation import Rotator
 from ldm.config import CoreConfig
-from ldm.rotation import RotationPolicy, Rotator, next_rotation
+from ldm.core.rotation import next_rotation
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = [
     "DEFAULT_STRATEGY",

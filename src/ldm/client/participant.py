@@ -26,6 +26,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from ldm.client.rotation import Rotator
 from ldm.config import BrokerSettings, ParticipantConfig, build
 from ldm.errors import (
     ConnectError,
@@ -37,7 +38,6 @@ from ldm.errors import (
     SessionSilent,
     TrustError,
 )
-from ldm.rotation import RotationPolicy, Rotator
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
 from ldm.security.identity import verify
 from ldm.security.trust import Trust
@@ -52,6 +52,7 @@ from ldm.wire.messages import (
     SessionNotice,
     SessionRequest,
 )
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = ["Participant", "Session"]
 

@@ -63,9 +63,9 @@ from ldm.core.admission import (
     request_like,
     tagged,
 )
+from ldm.core.rotation import next_rotation
 from ldm.core.state import Pseudonym, Route, ServiceEntry, SessionState, new_pseudonym
 from ldm.ops.hops import Hops
-from ldm.rotation import next_rotation
 from ldm.security.crypto import KeyPair, input_tag
 from ldm.security.identity import SigningKey, verify
 from ldm.security.trust import Trust

@@ -11,8 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ldm.rotation import RotationPolicy
 from ldm.security.identity import canonical
+from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN, TOKEN_PATTERN
 
 __all__ = [
@@ -167,7 +167,7 @@ class SessionGrant(_Wire):
     rekey_interval: float = 1.0
     """The shortest time between two ephemeral keys the core accepts for a session."""
     rotation: RotationPolicy | None = None
-    """The core's rotation strategy and silence (`ldm.rotation`); None (an older core):
+    """The core's rotation strategy and silence (`ldm.wire.rotation`); None (an older core):
     ``periodic``, without silence."""
     auth_key: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
     """The core's X25519 key for this grant, answering the request's ``k``: from the

@@ -408,6 +408,9 @@ def test_cores_and_worker_match_the_topology() -> None:
         assert command[command.index("--cluster") + 1] == f"mqtt://broker-{name}:1883"
         assert command[command.index("--backbone") + 1] == "mqtt://broker-backbone:1883"
         assert command[command.index("--rotation-period") + 1] == "120"
+    user_core = services["core-user"]["command"]  # the core that grants sessions
+    assert user_core[user_core.index("--rotation") + 1] == "epoch"
+    assert user_core[user_core.index("--silence") + 1] == "15"
     worker = services["worker"]
     assert worker["command"][:2] == ["laas", "worker"]
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"

@@ -173,6 +173,36 @@ def _plots(
     return paths
 
 
+def _cmd_privacy(a: argparse.Namespace) -> int:
+    import time
+
+    from laas.sim.privacy import STRATEGIES, format_privacy, privacy_rows, target_check
+
+    def numbers(text: str) -> list[int]:
+        return [int(x) for x in text.split(",") if x]
+
+    strategies = a.strategies.split(",") if a.strategies else list(STRATEGIES)
+    t0 = time.perf_counter()
+    rows = []
+    for row in privacy_rows(
+        a.places.split(","),
+        numbers(a.users),
+        a.duration,
+        range(a.runs),
+        strategies,
+        a.accuracy_users or None,
+    ):
+        rows.append(row)
+        print(f"privacy: {row.place} {row.users} users, {row.strategy}", file=sys.stderr)
+    if a.json:
+        print(json.dumps([r.as_dict() for r in rows], indent=1))
+    else:
+        print(format_privacy(rows))
+        print(f"\n{target_check(rows)}")
+        print(f"({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
 def _cmd_plot(a: argparse.Namespace) -> int:
     scenario, hdmap = _scenario(a)
     _plots(scenario, hdmap, Path(a.out), a.seed, a.sigma_pos, a.sigma_vel)
@@ -720,6 +750,29 @@ def _add_offline(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--plot", metavar="DIR", help="also write the pictures to DIR")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser(
+        "privacy",
+        help="how many pseudonym changes a tracker on the service side undoes, per rotation "
+        "strategy, and what each costs in accuracy",
+    )
+    p.add_argument(
+        "--places",
+        default="ring,helsinki,urban",
+        help="maps the users roam: ring (a closed ring road), a bundled map, or a road family",
+    )
+    p.add_argument("--users", default="5,10,50,200", help="road users per run, comma-separated")
+    p.add_argument("--duration", type=float, default=600.0, help="seconds per run")
+    p.add_argument("--runs", type=int, default=1, help="seeded runs per place and user count")
+    p.add_argument("--strategies", help="comma-separated (default: all of laas.sim.privacy)")
+    p.add_argument(
+        "--accuracy-users",
+        type=int,
+        default=20,
+        help="also run this many users with the engine's accuracy scored (0: never)",
+    )
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_privacy)
 
     p = sub.add_parser(
         "bench-filter", help="lane filter time per update against users in a segment"

@@ -25,6 +25,7 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    SessionSilent,
     TrustError,
 )
 from ldm.local.embedded import BrokerProcess, EmbeddedBroker
@@ -33,6 +34,7 @@ from ldm.security.crypto import KeyPair
 from ldm.security.identity import SigningKey
 from ldm.security.trust import Trust
 from ldm.wire.messages import ServiceDescription, ServiceSpec, SessionGrant
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = [
     "BatchHandler",
@@ -56,6 +58,7 @@ __all__ = [
     "Request",
     "RequestRejected",
     "RequestTimeout",
+    "RotationPolicy",
     "RoutedSession",
     "ServiceDescription",
     "ServiceNotFound",
@@ -63,6 +66,7 @@ __all__ = [
     "Session",
     "SessionError",
     "SessionGrant",
+    "SessionSilent",
     "SigningKey",
     "Trust",
     "TrustError",

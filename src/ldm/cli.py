@@ -23,7 +23,7 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core.core import Core
@@ -33,6 +33,7 @@ from ldm.ops.logs import LOG_FORMATS, configure
 from ldm.ops.metrics import Metrics, MetricsServer
 from ldm.ops.passwd import random_password, set_passwords
 from ldm.security.identity import SigningKey, endorse
+from ldm.wire.rotation import MAX_SILENCE, RotationPolicy, Strategy
 
 __all__ = [
     "broker_settings",
@@ -104,6 +105,20 @@ def _parser() -> argparse.ArgumentParser:
         default = CoreConfig.model_fields[field].default
         unit = "messages/s" if field == "rate" else "messages" if field == "burst" else "seconds"
         core.add_argument(option, type=float, default=default, help=f"{unit} (default {default})")
+    core.add_argument(
+        "--rotation",
+        choices=get_args(Strategy),
+        default=RotationPolicy().strategy,
+        help="who decides when pseudonyms change (docs/ldm.md, ldm.wire.rotation; default "
+        f"{RotationPolicy().strategy})",
+    )
+    core.add_argument(
+        "--silence",
+        type=float,
+        default=RotationPolicy().silence,
+        help=f"seconds a participant sends nothing after each change (default "
+        f"{RotationPolicy().silence:g}, at most {MAX_SILENCE:g})",
+    )
     core.add_argument(
         "--max-payload",
         type=int,
@@ -225,6 +240,7 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
         cluster=cluster,
         backbone=backbone,
         rotation_period=args.rotation_period,
+        rotation={"strategy": args.rotation, "silence": args.silence},
         grace=args.grace,
         idle_timeout=args.idle_timeout,
         service_ttl=args.service_ttl,

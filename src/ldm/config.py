@@ -23,6 +23,7 @@ from pydantic import (
 )
 
 from ldm.errors import ConfigError
+from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
@@ -228,6 +229,11 @@ class CoreConfig(_Settings):
     cluster: BrokerSettings
     backbone: BrokerSettings | None = None
     rotation_period: float = Field(default=120.0, gt=0)
+    rotation: RotationPolicy = Field(default_factory=RotationPolicy)
+    """Who decides when a session's pseudonym changes, and the silence after a change
+    (`ldm.wire.rotation`); sent to participants in each grant. ``rotation_period`` is the
+    period (``periodic``, ``epoch``) or the longest a pseudonym lives (``distance``,
+    ``stop``)."""
     grace: float = Field(default=5.0, ge=0)
     idle_timeout: float = Field(default=30.0, gt=0)
     service_ttl: float = Field(default=30.0, gt=0)
@@ -272,6 +278,17 @@ class CoreConfig(_Settings):
     _check_anchors = field_validator("anchors")(_anchors)
 
     _check_brokers = field_validator("cluster", "backbone", mode="before")(_url_as_broker)
+
+    @model_validator(mode="after")
+    def _check_silence(self) -> Self:
+        silence = self.rotation.silence
+        if silence > self.rotation_period / 2 or silence >= self.idle_timeout:
+            raise ValueError(
+                f"rotation.silence {silence:g} s must be at most half the rotation_period "
+                f"({self.rotation_period:g} s) and below idle_timeout ({self.idle_timeout:g} "
+                "s): a participant silent longer would rarely send, or lose its session"
+            )
+        return self
 
     @property
     def rekey_interval(self) -> float:

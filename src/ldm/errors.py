@@ -5,7 +5,8 @@ LdmError
 ├── ConnectError       a broker could not be reached in time
 ├── ServiceNotFound    the requested service is not in the cluster's service list
 ├── SessionError       the core refused or lost a session
-│   └── RequestRejected  the core refused one input (malformed, too large, rate limit)
+│   ├── RequestRejected  the core refused one input (malformed, too large, rate limit)
+│   └── SessionSilent    the session keeps quiet after a change of pseudonym
 ├── RequestTimeout     no reply arrived in time (also a TimeoutError)
 ├── CryptoError        a payload could not be decrypted or a key is malformed
 ├── TrustError         a service's identity is neither pinned nor endorsed by an anchor
@@ -24,6 +25,7 @@ __all__ = [
     "RequestTimeout",
     "ServiceNotFound",
     "SessionError",
+    "SessionSilent",
     "TrustError",
 ]
 
@@ -61,6 +63,12 @@ class RequestRejected(SessionError):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class SessionSilent(SessionError):
+    """The session keeps quiet for a few seconds after a change of pseudonym (the core's
+    rotation policy, `ldm.wire.rotation`): nothing was sent. Answer the application yourself
+    until ``Session.silent`` is False (a positioning client dead-reckons)."""
 
 
 class RequestTimeout(LdmError, TimeoutError):

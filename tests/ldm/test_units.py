@@ -45,6 +45,7 @@ def test_public_api_is_pinned() -> None:
             "Request",
             "RequestRejected",
             "RequestTimeout",
+            "RotationPolicy",
             "RoutedSession",
             "ServiceDescription",
             "ServiceNotFound",
@@ -54,6 +55,7 @@ def test_public_api_is_pinned() -> None:
             "Trust",
             "TrustError",
             "SessionError",
+            "SessionSilent",
             "SessionGrant",
         ]
     )

@@ -34,11 +34,19 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from laas.deadreckon import dead_reckon
 from laas.discovery import wait_for_service
 from laas.errors import LaasError
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.worker.service import SERVICE_NAME
-from ldm import BrokerSettings, Participant, RequestRejected, RoutedSession, ServiceNotFound
+from ldm import (
+    BrokerSettings,
+    Participant,
+    RequestRejected,
+    RoutedSession,
+    ServiceNotFound,
+    SessionSilent,
+)
 from ldm.wire.topics import NAME_PATTERN
 
 __all__ = [
@@ -111,7 +119,8 @@ class PoolStats:
     opened: int = 0  # sessions opened
     forgotten: int = 0  # devices dropped after track_timeout of silence
     fixes: int = 0  # fixes submitted
-    answered: int = 0  # corrected positions received
+    answered: int = 0  # corrected positions received, or made while the session kept quiet
+    silent: int = 0  # of them, dead-reckoned by the bridge (`laas.deadreckon`)
     refused: int = 0  # error replies from the service
     lost: int = 0  # fixes with no reply (no session, timeout, connection)
     malformed: int = 0  # device messages that were not a fix
@@ -161,6 +170,8 @@ class _Device:
     where: tuple[float, float]  # (longitude, latitude) of its first fix: its first worker
     session: Future[RoutedSession] = field(default_factory=Future)
     participant: Participant | None = None
+    last: tuple[CorrectedPosition, GpsMeasurement] | None = None  # its last answer, and fix
+    last_fix: GpsMeasurement | None = None  # its last fix sent on (for its motion)
 
 
 class DevicePool:
@@ -214,9 +225,7 @@ class DevicePool:
                 self._executor.submit(self._open, device)
             device.last_seen = now
             self.stats.fixes += 1
-        payload = fix.model_dump(exclude_none=True)
-        where = (fix.longitude, fix.latitude)
-        device.session.add_done_callback(lambda f: self._send(device, f, payload, where, on_answer))
+        device.session.add_done_callback(lambda f: self._send(device, f, fix, on_answer))
 
     def malformed(self, name: str, problem: str) -> None:
         """Count a message of device `name` that was not a fix, and log it (rate-limited)."""
@@ -320,8 +329,7 @@ class DevicePool:
         self,
         device: _Device,
         opened: Future[RoutedSession],
-        payload: dict[str, Any],
-        where: tuple[float, float],
+        fix: GpsMeasurement,
         on: OnAnswer,
     ) -> None:
         error = CancelledError() if opened.cancelled() else opened.exception()
@@ -335,8 +343,14 @@ class DevicePool:
                 error,
             )
             return
+        payload = fix.model_dump(exclude_none=True)
+        where = (fix.longitude, fix.latitude)
+        session = opened.result()
+        before, device.last_fix = device.last_fix, fix
+        if before is not None and fix.timestamp > before.timestamp:  # for the rotation policy
+            session.moved(fix.speed * (fix.timestamp - before.timestamp) / 1000.0, fix.speed)
         try:  # to the worker whose region holds the fix (a hand-over opens a session)
-            reply = opened.result().submit(payload, where)
+            reply = session.submit(payload, where)
         except ServiceNotFound:  # its message holds the position: not logged
             self.stats.lost += 1
             self.limiter.warn(
@@ -352,10 +366,18 @@ class DevicePool:
                 f"{device.name}|route", "device %s: a fix was not sent: %s", device.name, exc
             )
             return
-        reply.add_done_callback(lambda r: self._reply(device, r, on))
+        reply.add_done_callback(lambda r: self._reply(device, fix, r, on))
 
-    def _reply(self, device: _Device, reply: Future[dict[str, Any]], on: OnAnswer) -> None:
+    def _reply(
+        self, device: _Device, fix: GpsMeasurement, reply: Future[dict[str, Any]], on: OnAnswer
+    ) -> None:
         error = reply.exception()
+        if isinstance(error, SessionSilent) and device.last is not None:
+            # The session keeps quiet after a change of pseudonym: answer as the device would.
+            self.stats.answered += 1
+            self.stats.silent += 1
+            self._pass_on(device, dead_reckon(*device.last, fix), on)
+            return
         if error is not None:
             self.stats.lost += 1
             if isinstance(error, RequestRejected) and "ephemeral key" in str(error):
@@ -392,6 +414,12 @@ class DevicePool:
             )
         else:
             self.stats.answered += 1
+            device.last = (answer, fix)
+        self._pass_on(device, answer, on)
+
+    def _pass_on(
+        self, device: _Device, answer: CorrectedPosition | ErrorReply, on: OnAnswer
+    ) -> None:
         try:
             on(answer)
         except Exception:

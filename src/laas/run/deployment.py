@@ -34,6 +34,7 @@ from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_b
 from ldm.ops.hops import Hops
 from ldm.ops.metrics import Metrics, MetricsServer
 from ldm.security.identity import SigningKey
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
 
@@ -61,6 +62,7 @@ class LocalDeployment:
         *,
         brokers: BrokerChoice = "auto",
         rotation_period: float = 120.0,
+        rotation: RotationPolicy | None = None,
         data_qos: int = 0,
         worker_process: bool = False,
         hops: Hops | None = None,
@@ -87,6 +89,8 @@ class LocalDeployment:
             ("mosquitto" if find_mosquitto() else "embedded") if brokers == "auto" else brokers
         )
         self.rotation_period = rotation_period
+        self.rotation = rotation or RotationPolicy()
+        """The user core's rotation strategy (`ldm.wire.rotation`); the LDM's default if None."""
         self.data_qos = data_qos
         self.worker_process = worker_process
         self.brokers: dict[str, RunningBroker] = {}
@@ -136,6 +140,7 @@ class LocalDeployment:
                     self.brokers[name].url,
                     backbone,
                     rotation_period=self.rotation_period,
+                    rotation=self.rotation,
                     data_qos=self.data_qos,
                     service_keys={"laas": self.identity.public},
                 )

@@ -27,11 +27,19 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from laas.deadreckon import dead_reckon
 from laas.discovery import wait_for_service
-from laas.models import CorrectedPosition, ErrorReply, read_reply
+from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.sim.scenario import Trace
 from laas.worker.service import SERVICE_NAME
-from ldm import BrokerSettings, Participant, RoutedSession, ServiceNotFound, Session
+from ldm import (
+    BrokerSettings,
+    Participant,
+    RoutedSession,
+    ServiceNotFound,
+    Session,
+    SessionSilent,
+)
 
 __all__ = [
     "LiveRun",
@@ -56,6 +64,7 @@ class LiveRun:
     answers: list[CorrectedPosition | None]
     latencies: list[float] = field(default_factory=list)  # s, publish to reply
     errors: list[str] = field(default_factory=list)
+    silent: int = 0  # fixes answered by the participant itself (silence after a change)
 
     @property
     def answered(self) -> int:
@@ -95,6 +104,7 @@ class Reply:
     latency: float | None  # s from just before the submit to the reply, for an answer
     error: str | None
     lost: bool = False  # no reply at all (a timeout, or the session gave it up)
+    silent: bool = False  # not sent: the session kept quiet after a change of pseudonym
 
 
 def accounts(trace: Trace, prefix: str) -> dict[str, str]:
@@ -149,8 +159,14 @@ def submit_on_time(
     shift = round(start * 1000.0) - t0_ms
     mono0 = time.perf_counter() + (start - time.time())
     requests: list[Request] = []
+    last: dict[str, int] = {}  # user -> the timestamp of its last fix
     for i, (user, measurement) in enumerate(sends):
         timestamp = int(measurement["timestamp"])
+        before = last.get(user)
+        last[user] = timestamp
+        if before is not None:  # the motion the receiver reports, for the rotation policy
+            speed = float(measurement["speed"])
+            sessions[user].moved(speed * (timestamp - before) / 1000.0, speed)
         delay = mono0 + (timestamp - t0_ms) / 1000.0 / speedup - time.perf_counter()
         if delay > 0:
             time.sleep(delay)
@@ -182,6 +198,9 @@ def collect_replies(sent: Sent, reply_timeout: float) -> Iterator[Reply]:
             yield Reply(
                 r.index, None, None, f"fix {r.index}: no reply within {reply_timeout:g} s", True
             )
+            continue
+        except SessionSilent as exc:  # kept quiet: the participant answers itself
+            yield Reply(r.index, None, None, f"fix {r.index}: {exc}", silent=True)
             continue
         except Exception as exc:  # the session reports a lost request as an error
             yield Reply(
@@ -248,13 +267,22 @@ def run_participants(
             speedup=speedup,
             on_submit=report,
         )
+        last: dict[str, tuple[CorrectedPosition, GpsMeasurement]] = {}
         for reply in collect_replies(sent, reply_timeout):
+            fix = trace.fixes[reply.index]
+            held = last.get(fix.user)
+            if reply.silent and held is not None:  # as the device would: dead-reckoned
+                run.answers[reply.index] = dead_reckon(held[0], held[1], fix.measurement)
+                run.silent += 1
+                continue
             if reply.answer is None:
                 run.errors.append(reply.error or f"fix {reply.index}: no answer")
                 continue
-            run.answers[reply.index] = reply.answer.model_copy(
+            answer = reply.answer.model_copy(
                 update={"timestamp": reply.answer.timestamp - sent.shift}
             )
+            run.answers[reply.index] = answer
+            last[fix.user] = (answer, fix.measurement)
             if reply.latency is not None:
                 run.latencies.append(reply.latency)
     return run

@@ -26,6 +26,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from ldm.client.rotation import Rotator
 from ldm.config import BrokerSettings, ParticipantConfig, build
 from ldm.errors import (
     ConnectError,
@@ -34,6 +35,7 @@ from ldm.errors import (
     RequestTimeout,
     ServiceNotFound,
     SessionError,
+    SessionSilent,
     TrustError,
 )
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
@@ -50,6 +52,7 @@ from ldm.wire.messages import (
     SessionNotice,
     SessionRequest,
 )
+from ldm.wire.rotation import RotationPolicy
 
 __all__ = ["Participant", "Session"]
 
@@ -132,9 +135,9 @@ class Session:
         self._pending: dict[str, _Pending] = {}
         self._lock = threading.Lock()
         self._secret = secret  # shared with the core by the grant; tags every input
-        self._rotated_at = time.time()
-        self._sent_keys: _Keys | None = None  # the latest key input went out under
-        self._first_sent = 0.0  # when input first went out under it: the core's clock
+        self._rotator = Rotator(
+            grant.rotation or RotationPolicy(), grant.rekey_interval, time.time()
+        )
         self.rotations = 0
         """How many times this session changed its ephemeral key (and pseudonym)."""
         self.retries = 0
@@ -149,8 +152,32 @@ class Session:
         """The current ephemeral key pair and its cipher with the service."""
         return self._keys
 
+    @property
+    def silent(self) -> bool:
+        """Keeping quiet after a change of pseudonym (the core's policy): input is not
+        sent now (`submit` fails with SessionSilent); answer the application yourself."""
+        return self._rotator.silent(time.time())
+
+    def moved(self, metres: float, speed: float) -> bool:
+        """Tell the library how far the participant moved since the last report and its
+        speed now (m, m/s): under the ``distance`` and ``stop`` strategies it changes the
+        key (and pseudonym) itself when they say so. True if it did. Nothing is sent."""
+        now = time.time()
+        return self._rotator.moved(metres, speed, now) and self.rotate(now)
+
     def submit(self, payload: Mapping[str, Any]) -> Future[Payload]:
-        """Send one input now; the future gets the service's reply."""
+        """Send one input now; the future gets the service's reply (or SessionSilent at
+        once, unsent, while the session keeps quiet after a change of pseudonym)."""
+        if self.silent:
+            future: Future[Payload] = Future()
+            until = self._rotator.silent_until - time.time()
+            future.set_exception(
+                SessionSilent(
+                    f"not sent: the session with {self.service.name!r} keeps quiet for "
+                    f"{until:.1f} s more after its change of pseudonym; answer locally"
+                )
+            )
+            return future
         c = _token()
         pending = _Pending(
             Future(), self._keys, json.dumps(payload, separators=(",", ":")).encode(), 0.0
@@ -189,16 +216,14 @@ class Session:
         if unreachable is not None:
             self.fail(c, unreachable)
             return
-        if keys is not self._sent_keys:
-            with self._lock:
-                if keys is not self._sent_keys:
-                    self._sent_keys, self._first_sent = keys, pending.sent
         pending.disconnects = self._participant.disconnects
         sealed = keys.cipher.seal(pending.plaintext, aad(c, pending.sent))
         k, secret = keys.pair.public, self._secret
         tag = None if secret is None else input_tag(secret, c, pending.sent, k, sealed)
         env = Envelope(c=c, t=pending.sent, k=k, d=sealed, m=tag)
         pending.envelope, pending.tried = env, pending.sent
+        if keys is self._keys:
+            self._rotator.used(pending.sent)
         if not self._participant.publish_input(self, env):
             self.fail(
                 c,
@@ -210,21 +235,20 @@ class Session:
 
     # --- called by its participant (the participant's worker thread) --------------------
 
-    def rotate(self, now: float) -> bool:
-        """Start a new ephemeral key, at most once per ``rekey_interval`` (else False).
+    def rotate(self, now: float, quiet: bool = True) -> bool:
+        """Start a new ephemeral key, at most once per ``rekey_interval`` (else False),
+        then keep quiet for the policy's silence (unless not `quiet`).
 
         The core refuses a session's new key sooner than that, so a rotation more often,
         asked by a replayed or forged notice, would only lock the session out. Both
-        count from the first input under the current key, the core from its arrival
-        (counted from the rotation instead, the participant ran ahead of the core by
-        the time until its next input, and the core refused the new key: issue 25).
+        count from the first input under the current key (`Rotator.used`), the core from
+        its arrival (counted from the rotation instead, the participant ran ahead of the
+        core by the time until its next input, and the core refused the new key: issue 25).
         """
-        if now - self._rotated_at < self.grant.rekey_interval:
-            return False
-        if now - self._first_sent < self.grant.rekey_interval:
+        if not self._rotator.may_change(now):
             return False
         self._keys = _Keys.new(self.grant.service)
-        self._rotated_at = now
+        self._rotator.changed(now, quiet)
         self.rotations += 1
         return True
 
@@ -244,12 +268,14 @@ class Session:
         changed = grant.service.public_key != self.grant.service.public_key
         self.grant = grant
         self._secret = secret
+        self._rotator.policy = grant.rotation or RotationPolicy()
+        self._rotator.rekey_interval = grant.rekey_interval
         if changed:
             self._keys = _Keys.new(grant.service)
-            self._rotated_at = time.time()
+            self._rotator.changed(time.time(), quiet=False)
             self.rotations += 1
         else:
-            self.rotate(time.time())
+            self.rotate(time.time(), quiet=False)
         with self._lock:
             waiting, self._pending = list(self._pending.values()), {}
             resend = [(_token(), p) for p in waiting]

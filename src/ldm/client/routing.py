@@ -99,6 +99,13 @@ class RoutedSession:
         """Send one input to the provider for (longitude, latitude) `where`."""
         return self._session(where).submit(payload)
 
+    def moved(self, metres: float, speed: float) -> bool:
+        """Report motion to the current provider's session (`ldm.Session.moved`)."""
+        with self._lock:
+            current = self._current
+            session = None if current is None else self._sessions.get(current.name)
+        return session is not None and session.moved(metres, speed)
+
     def request(
         self, payload: Mapping[str, Any], where: tuple[float, float], timeout: float = 2.0
     ) -> Payload:

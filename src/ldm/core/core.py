@@ -63,6 +63,7 @@ from ldm.core.admission import (
     tag_secret,
     tagged,
 )
+from ldm.core.rotation import next_rotation
 from ldm.core.state import (
     Pseudonym,
     Route,
@@ -1055,6 +1056,7 @@ class Core(Worker[Event]):
             data_qos=cfg.data_qos,
             rekey_interval=cfg.rekey_interval,
             auth_key=auth_key,
+            rotation=cfg.rotation,
         )
         self.stats.granted += 1
         session.last_grant = SessionNotice(kind="grant", service=req.service, c=req.c, grant=grant)
@@ -1234,7 +1236,9 @@ class Core(Worker[Event]):
                 self._pseudonyms.pop(session.old.pop(0).name, None)
             self.stats.rotations += 1
         session.current = fresh
-        session.next_rotate = now + self.config.rotation_period
+        session.next_rotate = next_rotation(
+            self.config.rotation.strategy, self.config.rotation_period, now
+        )
         self._pseudonyms[fresh.name] = session
         return fresh.name
 
@@ -1305,7 +1309,7 @@ class Core(Worker[Event]):
             if session.current is not None and now >= session.next_rotate:
                 # Again every period until a new key arrives: a lost notice (or a
                 # participant that reconnected with a clean session) only delays rotation.
-                session.next_rotate = now + cfg.rotation_period
+                session.next_rotate = next_rotation(cfg.rotation.strategy, cfg.rotation_period, now)
                 self._notify(session.client, SessionNotice(kind="rotate", service=session.service))
 
 

@@ -12,6 +12,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ldm.security.identity import canonical
+from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN, TOKEN_PATTERN
 
 __all__ = [
@@ -176,6 +177,9 @@ class SessionGrant(_Wire):
     data_qos: int
     rekey_interval: float = 1.0
     """The shortest time between two ephemeral keys the core accepts for a session."""
+    rotation: RotationPolicy | None = None
+    """The core's rotation strategy and silence (`ldm.wire.rotation`); None (an older core):
+    ``periodic``, without silence."""
     auth_key: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
     """The core's X25519 key for this grant, answering the request's ``k``: from the
     two the participant derives the secret with which it tags its input (``m``)."""

@@ -4,7 +4,7 @@
 the geometry of its fix); the equations of its module docstring then run here once for
 the whole area instead of once per user. Users have different lane counts L_i and spans
 of u-cells H_i = hi_i - lo_i, so each is padded to the largest, H and L: a padded lane has
-no probability (its row of alpha and its motion fit are 0), so it never takes any mass,
+no probability (its column of alpha and its motion fit are 0), so it never takes mass,
 and a padded cell lies outside the posterior's window, so no cell of b reads it.
 
     prediction   a[i, h, l] = sum_k alpha[i, h, k] T[i, k, l] * F[i, l]

@@ -391,7 +391,9 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
         newcomer = Participant.create(cluster.settings("user", first=2), client_id="late-car")
         newcomer.start(timeout=15)
         d.participants.append(newcomer)
-        assert wait_for(has_service(newcomer, "echo"), 15)
+        # the retained list may wait for JetStream's new leaders and a repair (one run in
+        # six after issue 25 needed more than 15 s; the cause is not yet known)
+        assert wait_for(has_service(newcomer, "echo"), 40)
 
         worst = max(item.answered[0] - item.at for item in answered)
         reconnect = {name: f"{f.result(1) - killed_at:.2f} s" for name, f in back.items()}

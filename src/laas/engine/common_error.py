@@ -15,7 +15,8 @@ filter: the discrete Bayes filter of the paper, applied to the common error):
 Across one straight road the posterior is a ridge along the road: nothing is corrected
 along it until some user drives a road of another direction, and the covariance of b
 says so (and with it every answer's along-road accuracy). `UGrid` is the 1-D grid of
-u = n . b shared by every direction n, and `project` gives the posterior of u.
+u = n . b shared by every direction n, and `u_moments` gives the posterior of u
+(and its moments of b) per cell of that grid.
 
 A participant that lies (issue 11). Pooled in full, the evidence of one user who
 reports a false path (or whose receiver is broken) pulls b towards its false value by
@@ -135,7 +136,6 @@ class CommonError:
         # the u-grid cells of n . b over the window, per normal n, while the window stays
         self._cells_win: tuple[int, int, int, int] = (0, 0, 0, 0)
         self._cells_of: dict[tuple[float, float], tuple[np.ndarray, tuple[int, int]]] = {}
-        self._cells_span = (0, 0)
         self._drift_var = drift**2
         self._pending_var = 0.0
         self.t: float | None = None
@@ -216,6 +216,10 @@ class CommonError:
 
     def _cells(self, normal: np.ndarray) -> np.ndarray:
         """The u-grid cell of n . b for each window cell (kept per n while the window is)."""
+        return self._cells_and_span(normal)[0]
+
+    def _cells_and_span(self, normal: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+        """`_cells`, and the cells [lo, hi) they take."""
         if self._cells_win != self._win:
             self._cells_win, self._cells_of = self._win, {}
         key = (float(normal[0]), float(normal[1]))
@@ -225,8 +229,7 @@ class CommonError:
             proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
             idx = self.u.index(proj)
             found = self._cells_of[key] = (idx, (int(idx.min()), int(idx.max()) + 1))
-        self._cells_span = found[1]
-        return found[0]
+        return found
 
     def u_moments(self, normal: np.ndarray) -> np.ndarray:
         """(U, 6): for each u-cell k of n . b, the sums over the window's cells b with
@@ -250,15 +253,9 @@ class CommonError:
 
     def span(self, normal: np.ndarray) -> tuple[int, int]:
         """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
-        u = n . b whose evidence `update` reads, and where `project` has mass."""
-        self._cells(normal)
-        lo, hi = self._cells_span
+        u = n . b whose evidence `update` reads, and where `u_moments` has mass."""
+        lo, hi = self._cells_and_span(normal)[1]
         return max(lo - _SPAN_MARGIN, 0), min(hi + _SPAN_MARGIN, self.u.size)
-
-    def project(self, normal: np.ndarray) -> np.ndarray:
-        """The posterior of u = n . b on the u-grid: p_u[k] = sum of p(b) over n . b in k."""
-        w, idx = self.weights_and_cells(normal)
-        return np.bincount(idx.ravel(), weights=w.ravel(), minlength=self.u.size)
 
     def update(
         self, normal: np.ndarray, log_c: np.ndarray, user: str | None = None, lo: int = 0
@@ -478,15 +475,6 @@ class CommonError:
         n = self._axis.size
         k = np.clip(np.rint((b - self._axis[0]) / self._res).astype(int), 0, n - 1)
         return int(k[0]), int(k[1])
-
-    def conditional(self, normal: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of b under p(b) weight[cell of n . b] (weight on the u-grid):
-        the common error given what is known about u, for example a user's lane."""
-        w = self._w * weight[self._cells(normal)]
-        total = float(w.sum())
-        if not total > 0.0:
-            return self.b.copy(), self.P.copy()
-        return self._stats(w / total)
 
 
 class _UserEvidence:

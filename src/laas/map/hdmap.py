@@ -50,7 +50,7 @@ _OFFSET_STEP = 1.0  # m, station spacing of the cached lane-offset table
 # How many points or stations the `*_many` queries of a `Segment` take one by one: the
 # arrays cost a fixed 270 us (frame), 160 us (point), 40 us (tangent) and 40 us (lane
 # offsets) however few they are, one at a time 2-3, 2, 2 and 6 us (Messe Hamburg, one core)
-_FEW = 96
+_FEW_FRAMES = 96
 _FEW_POINTS = 64
 _FEW_TANGENTS = 16
 _FEW_OFFSETS = 4
@@ -210,7 +210,7 @@ class Segment:
         (s, d). (The same as :meth:`frame_array`; a few points go one by one, which
         costs less than setting up the arrays.)"""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if len(pts) <= _FEW:
+        if len(pts) <= _FEW_FRAMES:
             return np.array([self.frame(x, y) for x, y in pts.tolist()]).reshape(-1, 2)
         return self.frame_array(pts)
 

@@ -625,12 +625,7 @@ class Core(Worker[Event]):
                 return
             self._routes[pseudonym] = Route(user_core, time.time())
             self._forward(
-                self.cluster,
-                topics.provider_input_batch(service),
-                topics.provider_input(service, pseudonym),
-                pseudonym,
-                env,
-                msg.payload,
+                self.cluster, topics.provider_input_batch(service), pseudonym, env, msg.payload
             )
             self.stats.forwarded_in += 1
         elif kind == "bb_reply":
@@ -1145,12 +1140,7 @@ class Core(Worker[Event]):
         qos = self.config.data_qos
         if svc.origin == self.name:
             self._outbox.add(
-                self.cluster,
-                topics.provider_input_batch(service),
-                topics.provider_input(service, pseudonym),
-                pseudonym,
-                payload,
-                qos,
+                self.cluster, topics.provider_input_batch(service), pseudonym, payload, qos
             )
         elif self.backbone is not None:
             problem = self._backbone_problem(now, service)
@@ -1164,7 +1154,6 @@ class Core(Worker[Event]):
             self._outbox.add(
                 self.backbone,
                 topics.bb_input_batch(svc.origin, service, self.name),
-                topics.bb_input(svc.origin, service, self.name, pseudonym),
                 pseudonym,
                 payload,
                 qos,
@@ -1255,12 +1244,7 @@ class Core(Worker[Event]):
             self.stats.dropped_unroutable += 1
             return
         self._forward(
-            self.backbone,
-            topics.bb_reply_batch(route.user_core, service),
-            topics.bb_reply(route.user_core, service, pseudonym),
-            pseudonym,
-            env,
-            payload,
+            self.backbone, topics.bb_reply_batch(route.user_core, service), pseudonym, env, payload
         )
         self.stats.forwarded_out += 1
 
@@ -1268,7 +1252,6 @@ class Core(Worker[Event]):
         self,
         to: Transport,
         batch_topic: str,
-        topic: str,
         pseudonym: str,
         env: Envelope,
         payload: bytes,
@@ -1277,7 +1260,7 @@ class Core(Worker[Event]):
         again), unless they hold a newline, which a batch line cannot: then as encoded."""
         if b"\n" in payload:
             payload = env.encode()
-        self._outbox.add(to, batch_topic, topic, pseudonym, payload, self.config.data_qos)
+        self._outbox.add(to, batch_topic, pseudonym, payload, self.config.data_qos)
 
     def _deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
         """A fresh reply (the caller checked its age) to the participant of a pseudonym."""

@@ -460,9 +460,8 @@ class Provider(Worker[Event]):
             # A retry (or a broker's duplicate) of an input answered lately: the same
             # reply again, so a reply lost on the way costs the participant one retry.
             qos = msg.qos if self.config.data_qos is None else self.config.data_qos
-            topic = topics.provider_reply(self.name, pseudonym)
             batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, topic, pseudonym, again[0], qos)
+            self._outbox.add(self.transport, batch_topic, pseudonym, again[0], qos)
             self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
@@ -500,12 +499,11 @@ class Provider(Worker[Event]):
         started = time.perf_counter()
         sealed = self.seal(route, correlation_id, payload)
         self._timed("seal", started)
-        topic = topics.provider_reply(self.name, pseudonym)
         if now:
-            self.transport.publish(topic, sealed, route.qos)
+            self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
         else:
             batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, topic, pseudonym, sealed, route.qos)
+            self._outbox.add(self.transport, batch_topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1
             if route.peer is not None:

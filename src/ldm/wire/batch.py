@@ -85,20 +85,18 @@ class Outbox:
         self,
         publisher: Publisher,
         batch_topic: str,
-        topic: str,
         pseudonym: str,
         envelope: bytes,
         qos: int,
     ) -> None:
         """Hold `envelope` for `pseudonym`, to be sent in a batch on `batch_topic` (of
-        one, if it is alone at the next `flush`). `topic`, the envelope's own single
-        topic, is not used for sending: see the module docstring. `envelope` must hold
-        no newline."""
+        one, if it is alone at the next `flush`: never on its own single topic, see the
+        module docstring). `envelope` must hold no newline."""
         key = (id(publisher), batch_topic)
         group = self._groups.get(key)
         if group is None:
             group = self._groups[key] = _Group(publisher, batch_topic)
-        group.add(topic, pseudonym, envelope, qos)
+        group.add(pseudonym, envelope, qos)
         if group.size >= MAX_BATCH_BYTES:
             self._sent(group.send())
 
@@ -121,19 +119,17 @@ class Outbox:
 class _Group:
     """One destination's envelopes, in order."""
 
-    __slots__ = ("batch_topic", "entries", "publisher", "qos", "size", "topic")
+    __slots__ = ("batch_topic", "entries", "publisher", "qos", "size")
 
     def __init__(self, publisher: Publisher, batch_topic: str) -> None:
         self.publisher = publisher
         self.batch_topic = batch_topic
         self.entries: list[tuple[str, bytes]] = []
-        self.topic = ""
         self.qos = 0
         self.size = 0
 
-    def add(self, topic: str, pseudonym: str, envelope: bytes, qos: int) -> None:
+    def add(self, pseudonym: str, envelope: bytes, qos: int) -> None:
         self.entries.append((pseudonym, envelope))
-        self.topic = topic
         self.qos = max(self.qos, qos)
         self.size += len(envelope) + len(pseudonym) + 2
 

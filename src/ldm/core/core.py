@@ -1037,7 +1037,7 @@ class Core(Worker[Event]):
         auth_key = None
         if req.k is not None:
             ours = KeyPair()
-            self._grant_secret(session, ours.session_secret(req.k), now)
+            self._grant_secret(session, ours.session_secret(req.k))
             auth_key = ours.public
         grant = SessionGrant(
             service=svc.description,
@@ -1058,7 +1058,7 @@ class Core(Worker[Event]):
         self._notify(client, session.last_grant)
 
     @staticmethod
-    def _grant_secret(session: SessionState, secret: bytes, now: float) -> None:
+    def _grant_secret(session: SessionState, secret: bytes) -> None:
         """Add a grant's secret to the session's, keeping those before it.
 
         On a broker without ACL anyone can send a well-formed request on a participant's
@@ -1070,7 +1070,7 @@ class Core(Worker[Event]):
         used only by its forger's tagged input: see docs/security.md for what remains.
         """
         held = session.secrets
-        held.append(SessionSecret(secret, now))
+        held.append(SessionSecret(secret))
         if len(held) > _MAX_SECRETS:
             unused = [s for s in held[:-1] if s.used == 0.0]
             victim = unused[0] if unused else min(held[:-1], key=lambda s: s.used)
@@ -1174,7 +1174,7 @@ class Core(Worker[Event]):
         if secret is None:
             return False
         for s in session.secrets:
-            if s.value is secret or s.value == secret:
+            if s.value == secret:
                 s.used = time.time()
         return True
 

@@ -47,7 +47,6 @@ class SessionSecret:
     """A secret one grant shared: input tagged with it is the session's."""
 
     value: bytes
-    made: float
     used: float = 0.0  # when authentic input last came tagged with it (0: never)
 
 

@@ -126,12 +126,12 @@ def _sim_rng(seed: int, user: str) -> random.Random:
 def service_view(trace: Trace, plan: Plan, seed: int = 0) -> list[str | None]:
     """The pseudonym each fix is sent under (None: not sent, the participant was silent),
     as the core and the participant library decide it (module docstring)."""
+    if plan.policy is None:
+        return [f.user for f in trace.fixes]
     out: list[str | None] = [None] * len(trace.fixes)
     by_user: dict[str, list[int]] = {}
     for i, fix in enumerate(trace.fixes):
         by_user.setdefault(fix.user, []).append(i)
-    if plan.policy is None:
-        return [f.user for f in trace.fixes]
     policy, period, rekey = plan.policy, plan.period, plan.rekey_interval
     for user, idx in by_user.items():
         t0 = trace.fixes[idx[0]].measurement.timestamp / 1000.0
@@ -320,11 +320,10 @@ def privacy_run(
     spans = _trips(trace)
     area = _area_km2(hdmap)
     density = sum(hi - lo for lo, hi in spans.values()) / max(duration, 1e-9) / area
-    baseline: list[CorrectedPosition | None] | None = None
-    right0: np.ndarray | None = None
+    scores0: tuple[np.ndarray, np.ndarray] | None = None  # the baseline: no rotation
     if accuracy:
-        baseline = _answers(hdmap, trace, service_view(trace, STRATEGIES["none"]), config)
-        right0, err0 = _scores(hdmap, trace, baseline)
+        unrotated = service_view(trace, STRATEGIES["none"])
+        scores0 = _scores(hdmap, trace, _answers(hdmap, trace, unrotated, config))
     rows = []
     for name in strategies:
         plan = STRATEGIES[name]
@@ -353,11 +352,10 @@ def privacy_run(
             long_trips=len(long),
             three_pieces=float(np.mean([1 + unjoined[u] >= 3 for u in long])) if long else math.nan,
         )
-        if accuracy and right0 is not None:
-            answers = _answers(hdmap, trace, view, config)
-            right, err = _scores(hdmap, trace, answers)
+        if scores0 is not None:
+            right, err = _scores(hdmap, trace, _answers(hdmap, trace, view, config))
             near = _near(trace, [(u, t) for u, t, _ in changes])
-            row = _with_accuracy(row, right, err, right0, err0, near)
+            row = _with_accuracy(row, right, err, *scores0, near)
         rows.append(row)
     return rows
 

@@ -451,6 +451,7 @@ class Provider(Worker[Event]):
         except (ValidationError, CryptoError, ValueError, RecursionError):
             self.stats.dropped_invalid += 1
             return None
+        qos = msg.qos if self.config.data_qos is None else self.config.data_qos
         if peer.replayed(env.c, env.t, now - self.config.max_age):
             with self._count:
                 again = peer.answers.get(env.c)
@@ -459,13 +460,11 @@ class Provider(Worker[Event]):
                 return None
             # A retry (or a broker's duplicate) of an input answered lately: the same
             # reply again, so a reply lost on the way costs the participant one retry.
-            qos = msg.qos if self.config.data_qos is None else self.config.data_qos
             batch_topic = topics.provider_reply_batch(self.name)
             self._outbox.add(self.transport, batch_topic, pseudonym, again[0], qos)
             self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
-        qos = msg.qos if self.config.data_qos is None else self.config.data_qos
         route = self._by_pseudonym[pseudonym] = _Reply(peer.cipher, qos, peer)
         self._by_pseudonym.move_to_end(pseudonym)
         if len(self._by_pseudonym) > self.config.cipher_cache:

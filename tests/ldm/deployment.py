@@ -103,9 +103,13 @@ class Deployment:
     sniffers: list[Sniffer]
     participants: list[Participant] = field(default_factory=list)
 
-    def participant(self, client_id: str, username: str | None = None) -> Participant:
+    def participant(
+        self, client_id: str, username: str | None = None, **options: Any
+    ) -> Participant:
+        """A started participant on the user broker (``ParticipantConfig`` `options`)."""
         settings = BrokerSettings(url=self.user.url, username=username)
-        p = Participant.create(settings, client_id=client_id, max_age=FAST["max_age"])
+        options.setdefault("max_age", FAST["max_age"])
+        p = Participant.create(settings, client_id=client_id, **options)
         p.start(timeout=5)
         self.participants.append(p)
         return p

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from ldm import ConnectError, Core, LdmError, Participant, RequestRejected
+from ldm import ConnectError, Core, LdmError, RequestRejected
 from ldm.client.participant import Session
 from ldm.config import BrokerSettings
 from ldm.local.brokers import wait_for
@@ -140,9 +140,7 @@ def test_a_participant_without_a_broker_fails_its_requests_within_2_s(deployment
     the problem within NO_BROKER_ERROR, not by timing out; with the broker back, the
     session works again."""
     d = deployment
-    p = Participant.create(d.user.url, client_id="una-car-9", max_age=FAST["max_age"], data_qos=1)
-    p.start(timeout=5)
-    d.participants.append(p)
+    p = d.participant("una-car-9", data_qos=1)
     d.wait_listed(p)
     session = p.open("echo")
     assert session.request({"before": 1}) == {"echo": {"before": 1}}
@@ -198,11 +196,7 @@ def test_a_retry_recovers_an_input_lost_in_a_failover(deployment) -> None:
     already is answered by the provider with the same reply, the handler not called
     again."""
     d = deployment
-    p = Participant.create(
-        d.user.url, client_id="wim-car-2", max_age=FAST["max_age"], retry_after=0.25
-    )
-    p.start(timeout=5)
-    d.participants.append(p)
+    p = d.participant("wim-car-2", retry_after=0.25)
     d.wait_listed(p)
     session = p.open("echo")
     assert session.request({"before": 1}) == {"echo": {"before": 1}}

@@ -46,10 +46,10 @@ from laas.map.hdmap import HdMap
 from laas.map.mapgen import Curve, LaneSpec, Straight, road_features_utm, track
 from laas.models import CorrectedPosition, GpsMeasurement
 from laas.sim.family import FAMILIES, MAP_FAMILIES, build_case
-from laas.sim.integrity import lane_right
 from laas.sim.linker import Observation, link
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import Trace, simulate
+from laas.sim.score import judge
 from ldm.client.rotation import Rotator
 from ldm.config import CoreConfig
 from ldm.core.rotation import next_rotation
@@ -61,6 +61,7 @@ __all__ = [
     "Plan",
     "PrivacyRow",
     "format_privacy",
+    "privacy_rows",
     "privacy_run",
     "privacy_trace",
     "service_view",
@@ -238,7 +239,6 @@ RING = (1000.0, 600.0, 40.0)  # m: the ring road's box and corner radius, about 
 RING_CUT = 150.0  # m: its road elements' length, like the families' (60-250 m)
 
 
-@functools.lru_cache(maxsize=1)
 def ring_map() -> HdMap:
     """``ring``: a closed two-way ring road (a driving, a bicycle lane and a sidewalk each
     way) round a 1.0 x 0.6 km box, so that road users keep driving it for as long as a
@@ -381,17 +381,12 @@ def _scores(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per fix: the answered lane is right (as `laas.sim.score` counts it), and the error
     in m (nan unanswered)."""
-    proj = hdmap.projection
     right = np.zeros(len(answers), dtype=bool)
     err = np.full(len(answers), np.nan)
     for i, (fix, a) in enumerate(zip(trace.fixes, answers, strict=True)):
-        if a is None:
-            continue
-        e, n = proj.to_utm(a.longitude, a.latitude)
-        err[i] = math.hypot(e - fix.true_e, n - fix.true_n)
-        right[i] = (a.segment == fix.segment and a.lane == fix.lane) or lane_right(
-            hdmap, (a.segment, a.lane), (fix.segment, fix.lane), fix.true_e, fix.true_n
-        )
+        if a is not None:
+            de, dn, _, right[i] = judge(hdmap, fix, a)
+            err[i] = math.hypot(de, dn)
     return right, err
 
 

@@ -32,9 +32,9 @@ from laas.engine.batches import MAX_BATCH, in_batches
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.sim.integrity import IntegrityTally, lane_right
-from laas.sim.scenario import Trace
+from laas.sim.scenario import SimulatedFix, Trace
 
-__all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "run_trace", "score"]
+__all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "judge", "run_trace", "score"]
 
 OBSERVABLE_SPAN = 20.0  # degrees
 
@@ -81,6 +81,19 @@ def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
     return score(hdmap, trace, answer_trace(hdmap, trace, config))
 
 
+def judge(
+    hdmap: HdMap, fix: SimulatedFix, answer: CorrectedPosition
+) -> tuple[float, float, bool, bool]:
+    """One answer against its fix's truth: (east, north error in m, its (segment, lane) is
+    the true one, its lane is right by geometry (`lane_right`))."""
+    e, n = hdmap.projection.to_utm(answer.longitude, answer.latitude)
+    by_id = answer.segment == fix.segment and answer.lane == fix.lane
+    right = by_id or lane_right(
+        hdmap, (answer.segment, answer.lane), (fix.segment, fix.lane), fix.true_e, fix.true_n
+    )
+    return e - fix.true_e, n - fix.true_n, by_id, right
+
+
 def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:
     """Score answers (one per fix of the trace, None where none came) against the truth."""
     proj = hdmap.projection
@@ -111,12 +124,7 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
         raw[i] = math.hypot(me - fix.true_e, mn - fix.true_n)
         if answer is None:
             continue
-        e, nn = proj.to_utm(answer.longitude, answer.latitude)
-        err[i] = (e - fix.true_e, nn - fix.true_n)
-        ok_id[i] = answer.segment == fix.segment and answer.lane == fix.lane
-        ok[i] = ok_id[i] or lane_right(
-            hdmap, (answer.segment, answer.lane), (fix.segment, fix.lane), fix.true_e, fix.true_n
-        )
+        err[i, 0], err[i, 1], ok_id[i], ok[i] = judge(hdmap, fix, answer)
         prob[i] = answer.probability
         sigma[i] = (answer.accuracy_cross, answer.accuracy_along)
     answered = ~np.isnan(err[:, 0])

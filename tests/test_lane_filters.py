@@ -2,22 +2,11 @@
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 import pytest
-from shapely.geometry import LineString
 
 from laas.engine.paper import JointHypothesisFilter
-from laas.engine.transition import (
-    KIND_FLOOR,
-    LaneTraits,
-    TypicalSpeed,
-    direction_likelihood,
-    kind_prior,
-    lane_transition,
-)
-from laas.map.hdmap import Lane, LaneType
+from laas.engine.transition import direction_likelihood, lane_transition
 
 OFFSETS = np.array([0.0, 3.25, 5.975, 7.975])
 NORMAL = np.array([1.0, 0.0])  # the road runs north; lanes increase to the east
@@ -93,32 +82,3 @@ def test_wrong_way_lanes_are_unlikely_for_moving_users_only() -> None:
     np.testing.assert_allclose(direction_likelihood(dirs, 8.0), [0.05, 1.0, 1.0])
     np.testing.assert_allclose(direction_likelihood(dirs, -8.0), [1.0, 0.05, 1.0])
     np.testing.assert_allclose(direction_likelihood(dirs, 0.5), [1.0, 1.0, 1.0])
-
-
-def _traits(*types: str) -> LaneTraits:
-    line = LineString([(0.0, 0.0), (0.0, 100.0)])
-    return LaneTraits(
-        [Lane("s", i, cast(LaneType, kind), 3.0, "forward", line) for i, kind in enumerate(types)]
-    )
-
-
-def test_a_typical_speed_weighs_lanes_by_the_kinds_they_carry() -> None:
-    traits = _traits("driving", "bicycle", "sidewalk")
-    cyclist, car, walker, unknown = kind_prior(traits, np.array([5.0, 12.0, 1.4, np.nan]))
-    # a steady 5 m/s is a cyclist's speed: its bicycle lane is likelier than the roadway
-    assert cyclist.argmax() == 1 and cyclist[0] < 0.5
-    # at 12 m/s it is a car: the roadway, and the others only as likely as the floor allows
-    assert car.argmax() == 0 and car[1] < 0.1 and car[2] == KIND_FLOOR
-    assert walker.argmax() == 2
-    # speeds alone never rule a lane out, and before any motion they say nothing
-    assert (np.array([cyclist, car, walker]) >= KIND_FLOOR).all()
-    np.testing.assert_array_equal(unknown, [1.0, 1.0, 1.0])
-
-
-def test_a_typical_speed_is_of_motion_and_fades() -> None:
-    typical = TypicalSpeed()
-    assert typical.update(0.2, 1.0) is None  # standing says nothing of the kind
-    assert typical.update(5.0, 1.0) == 5.0
-    assert typical.update(0.0, 10.0) == 5.0  # a stop leaves it
-    faded = typical.update(11.0, 15.0)
-    assert faded is not None and 5.0 < faded < 11.0

@@ -71,13 +71,7 @@ from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import Track
-from laas.engine.transition import (
-    LaneTraits,
-    TypicalSpeed,
-    kind_prior,
-    lane_transition_many,
-    motion_fit_many,
-)
+from laas.engine.transition import LaneTraits, lane_transition_many, motion_fit_many
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -139,7 +133,6 @@ class CooperativeLaneFilter(LaneFilter):
         )
         self._lanes: dict[str, _Lanes] = {}
         self._traits: dict[str, LaneTraits] = {}  # per road element
-        self._typical: dict[str, TypicalSpeed] = {}  # per user
 
     def common_errors(self) -> list[CommonError]:
         return list(self._errors.areas)
@@ -149,7 +142,6 @@ class CooperativeLaneFilter(LaneFilter):
 
     def leave(self, user: str) -> None:
         self._lanes.pop(user, None)
-        self._typical.pop(user, None)
 
     def segment_groups(self) -> int:
         return len({lanes.segment.id for lanes in list(self._lanes.values())})
@@ -209,18 +201,7 @@ class CooperativeLaneFilter(LaneFilter):
         if traits is None:
             traits = self._traits[segment.id] = LaneTraits(segment.lanes)
         speed = np.array([track.last_fix.speed for track in tracks])
-        # The kind of road user its typical speed suggests, as a prior over lane types
-        # (`transition.kind_prior`): applied once, by its change since the last fix.
-        typical = [self._typical.setdefault(user, TypicalSpeed()) for user, *_ in work]
-        before = np.array([np.nan if v.value is None else v.value for v in typical])
-        now = np.array(
-            [
-                np.nan if v is None else v
-                for v in (t.update(float(x), float(d)) for t, x, d in zip(typical, speed, dt))
-            ]
-        )
-        prior_before, prior_now = kind_prior(traits, before), kind_prior(traits, now)
-        fit = motion_fit_many(traits, _dot(velocity, tangent), speed) * prior_now
+        fit = motion_fit_many(traits, _dot(velocity, tangent), speed)
         # Lane changes: announced by lateral motion beyond its own noise (2 sigma), and
         # never into a lane that does not fit the motion (its share stays in the lane):
         # T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest stays.
@@ -260,8 +241,6 @@ class CooperativeLaneFilter(LaneFilter):
         out = []
         for i, (user, track, _, _) in enumerate(work):
             area = self._errors.at(track.position)
-            old = self._lanes.get(user)
-            fresh = old is None or old.area is not area
             alpha = self._table(user, segment, area, normal[i], position[i])
             self._lanes[user] = _Lanes(segment, area, normal[i], alpha)
             # Only the values of u = n . b that the posterior of b still holds, [lo, hi),
@@ -282,8 +261,7 @@ class CooperativeLaneFilter(LaneFilter):
                     float(frame[i, 1]),
                     offsets[i],
                     transition[i],
-                    (fit[i] / prior_now[i]) ** memory[i]
-                    * (prior_now[i] if fresh else prior_now[i] / prior_before[i]),
+                    fit[i] ** memory[i],
                     float(sigma[i]),
                     float(weight[i]),
                 )

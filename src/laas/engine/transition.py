@@ -25,22 +25,6 @@ cyclists who ride a sidewalk under about 5 m/s; a parking lane is a manoeuvre or
 free, a cyclist's lane (under about 7 m/s); cycling, e-bikes included, stays under
 about 12 m/s; a driving lane takes every speed (cars stop, and slow users share it).
 What the limits rule out is a car at speed on a sidewalk, a parking or a bicycle lane.
-
-Within the limits, speeds still say which kind of road user moves, and lanes are made
-for their kind: a user at a steady 5 m/s beside an empty bicycle lane is more likely a
-cyclist on it than a car crawling next to it. The kind kappa of a user is a lasting trait,
-so its speeds are one piece of evidence, not one per fix: with v_bar the user's typical
-moving speed (`TypicalSpeed`), a lane of type T is weighed by how likely its users move at
-that speed,
-
-    K_T(v_bar) = sum_kappa P(kappa | T) N(v_bar; m_kappa, s_kappa^2)      (`kind_prior`)
-
-normalised by its largest lane and floored at `KIND_FLOOR`, so speeds alone never make a
-lane more than 1 / KIND_FLOOR times less likely than another (the speed limits above do
-the ruling out). The lane filter applies K once, as a prior: its change K_t / K_t-1 at each
-fix, so over a user's life the factors multiply to K of its latest typical speed. The
-speeds per kind (`KIND_SPEEDS`) are what studies of road users report; the kinds per lane
-type (`LANE_KINDS`) say that lanes carry mostly their own kind, and are not fitted.
 """
 
 from __future__ import annotations
@@ -52,12 +36,7 @@ import numpy as np
 from laas.map.hdmap import Lane
 
 __all__ = [
-    "KIND_FLOOR",
-    "KIND_SPEEDS",
-    "LANE_KINDS",
     "SPEED_LIMITS",
-    "TypicalSpeed",
-    "kind_prior",
     "LaneTraits",
     "direction_likelihood",
     "lane_transition",
@@ -76,65 +55,6 @@ SPEED_LIMITS: dict[str, tuple[float, float, float]] = {
     "bicycle": (12.0, 1.5, 0.02),
 }
 """How fast a lane type's own users move; types not listed take every speed."""
-
-
-KIND_SPEEDS: dict[str, tuple[float, float]] = {
-    # kind: (mean, 1-sigma) of its moving speed, m/s
-    # cars: town streets 8-14 m/s, arterials 10-17, up to motorway speeds: broad
-    "car": (13.0, 7.0),
-    # cyclists: naturalistic cycling studies report means of 4.3 (bicycles) to 6.8 m/s
-    # (speed pedelecs), most riders between 3 and 8 m/s
-    "cyclist": (5.0, 1.5),
-    # walking: 1.2-1.5 m/s
-    "pedestrian": (1.4, 0.4),
-}
-"""How fast each kind of road user moves while moving."""
-
-LANE_KINDS: dict[str, tuple[float, float, float]] = {
-    # lane type: P(car, cyclist, pedestrian | a user moves on it)
-    "driving": (0.85, 0.15, 0.0),  # cyclists share the roadway, more where no bicycle lane
-    "bicycle": (0.05, 0.9, 0.05),  # mopeds and delivery, people crossing
-    "sidewalk": (0.0, 0.15, 0.85),  # children and others cycling on the footway
-    "parking": (0.8, 0.2, 0.0),  # manoeuvring cars; cyclists on a free parking lane
-}
-"""Which kinds of road user move on each lane type; other types count as driving lanes."""
-
-KIND_FLOOR = 0.05
-"""The least K_T / max K: speeds alone make a lane at most 20 times less likely."""
-
-_TYPICAL_MEMORY = 30.0  # s: the time scale on which a user's typical speed is its own
-
-
-class TypicalSpeed:
-    """A user's typical moving speed v_bar: the mean of its speeds of at least 1.5 m/s,
-    fading over `_TYPICAL_MEMORY` seconds (stops say nothing of the kind); None until it
-    has moved."""
-
-    __slots__ = ("value",)
-
-    def __init__(self) -> None:
-        self.value: float | None = None
-
-    def update(self, speed: float, dt: float) -> float | None:
-        if speed >= _MOVING:
-            if self.value is None:
-                self.value = speed
-            else:
-                self.value += (speed - self.value) * min(1.0, max(dt, 0.0) / _TYPICAL_MEMORY)
-        return self.value
-
-
-def kind_prior(traits: LaneTraits, typical: np.ndarray) -> np.ndarray:
-    """(g, L) K_T(v_bar) of the module docstring for (g,) typical speeds (nan: not yet
-    moved, every lane 1), normalised by the largest lane and floored at `KIND_FLOOR`."""
-    mean = np.array([m for m, _ in KIND_SPEEDS.values()])
-    sd = np.array([s for _, s in KIND_SPEEDS.values()])
-    v = np.nan_to_num(typical, nan=0.0)[:, None]
-    density = np.exp(-0.5 * ((v - mean) / sd) ** 2) / sd  # (g, kinds)
-    k = density @ traits.kinds.T  # (g, L)
-    k = k / np.maximum(k.max(axis=1, keepdims=True), 1e-300)
-    out: np.ndarray = np.where(np.isnan(typical)[:, None], 1.0, np.maximum(k, KIND_FLOOR))
-    return out
 
 
 def lane_transition(
@@ -211,15 +131,13 @@ _DIRECTION_CODE = {"forward": 1.0, "backward": -1.0}
 
 class LaneTraits:
     """The lanes of one road element as arrays, for `motion_fit_many`: each lane's
-    direction (+1 forward, -1 backward, 0 both), its type's speed limits (v_max,
-    v_width, floor; a type without limits takes v_max = inf, so S = 1) and the kinds of
-    road user it carries (`LANE_KINDS`, (L, kinds))."""
+    direction (+1 forward, -1 backward, 0 both) and its type's speed limits (v_max,
+    v_width, floor; a type without limits takes v_max = inf, so S = 1)."""
 
-    __slots__ = ("direction", "floor", "kinds", "v_max", "v_width")
+    __slots__ = ("direction", "floor", "v_max", "v_width")
 
     def __init__(self, lanes: Sequence[Lane]) -> None:
         self.direction = np.array([_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes])
-        self.kinds = np.array([LANE_KINDS.get(lane.type, LANE_KINDS["driving"]) for lane in lanes])
         limits = [SPEED_LIMITS.get(lane.type, (np.inf, 1.0, 1.0)) for lane in lanes]
         self.v_max, self.v_width, self.floor = (np.array(col) for col in zip(*limits, strict=True))
 

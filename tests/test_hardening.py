@@ -483,9 +483,9 @@ def test_core_sessions_and_provider_ciphers_stay_bounded() -> None:
                 c=f"c{i}", t=time.time(), k=KeyPair().public if i < 300 else key.public, d="AAAA"
             )
             core.handle(Message(f"ldm/p/p{i}/up/data/echo", env.encode(), 1, False, "cluster"))
-        assert core.session_count == 10_000 and len(core._pseudonyms) == 10_000
+        assert core.session_count == 10_000 and core.pseudonym_count == 10_000
         core.tick(time.time() + 5.0)
-        assert core.session_count == 0 and not core._pseudonyms and not core._limits
+        assert core.session_count == 0 and not core.pseudonym_count and not core.admission.clients
 
         for i in range(300):  # 300 participants' ephemeral keys, cache of 100
             k = KeyPair()

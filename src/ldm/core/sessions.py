@@ -8,7 +8,9 @@ each ephemeral key the session's input comes under gets its own random pseudonym
 (`new_pseudonym`), which is all that leaves the user cluster. A new key gets a new
 pseudonym (rotation); the old one is honoured for ``grace`` seconds. Every pseudonym is
 new state here, at the service core, the provider and the service, so keys may change
-at most every ``rekey_interval`` (`Sessions.pseudonym`).
+at most every ``rekey_interval`` (`Sessions.pseudonym`), with one exception that keeps
+that rate: a fresh grant lets one new key in early (a participant restarted under its
+client id, whose old process held the session's current key).
 
 Only the core's worker thread calls it: nothing here is locked.
 """
@@ -37,6 +39,7 @@ __all__ = ["Sessions"]
 
 _MAX_OLD = 4  # pseudonyms kept in their grace per session; a key-churning client gets no more
 _MAX_SECRETS = 4  # grant secrets kept per session (`Sessions._keep_secret`)
+_MAX_REKEYS = 2.0  # key changes a session may save up (`Sessions.pseudonym`)
 _REKEY_SLACK = 0.1
 """A new key is taken 10 % before ``rekey_interval`` is over: the participant counts
 from sending its first input under the current key, the core from its arrival, and
@@ -95,6 +98,7 @@ class Sessions:
         last = session.last_grant
         if last is not None and last.c == req.c:
             return last
+        session.granted = now
         cfg = self._config
         auth_key = None
         if req.k is not None:
@@ -170,7 +174,16 @@ class Sessions:
         """The pseudonym bound to this ephemeral key; a new key means a new pseudonym.
 
         A session may change keys at most every ``rekey_interval`` seconds (None:
-        refused), except when the service's own key changed (a restarted service).
+        refused), except when the service's own key changed (a restarted service), or
+        early, once, after a grant made since the current key came (a participant
+        restarted under its client id: its new process has a new key and a new grant).
+
+        So the rate stays bounded with early changes too, every change is paid from one
+        bucket, refilled at one per ``rekey_interval`` and holding at most 2: a change
+        on time always finds a token there (it comes an interval after the last); an
+        early one needs one left. Over any time T a session takes at most
+        2 + T / ``rekey_interval`` keys, one more than without early changes, however
+        many grants it asks for.
         """
         session.last_seen = now
         current = session.current
@@ -180,12 +193,16 @@ class Sessions:
             if old.key == key and old.until > now:
                 return old.name  # input sent before the rotation, still in its grace
         cfg = self._config
-        if (
-            current is not None
-            and current.service_key == service_key
-            and now - current.created < cfg.rekey_interval * (1.0 - _REKEY_SLACK)
-        ):
-            return None
+        interval = cfg.rekey_interval * (1.0 - _REKEY_SLACK)
+        if current is not None:
+            tokens = min(_MAX_REKEYS, session.rekeys + (now - session.rekeys_at) / interval)
+            on_time = now - current.created >= interval or current.service_key != service_key
+            early = session.granted > current.created and tokens >= 1.0
+            if not (on_time or early):
+                return None
+            session.rekeys, session.rekeys_at = max(0.0, tokens - 1.0), now
+        else:
+            session.rekeys_at = now  # the session's first key is free
         fresh = Pseudonym(new_pseudonym(), key, now, service_key)
         if current is not None:
             current.until = now + cfg.grace

@@ -193,6 +193,8 @@ class Admission:
         secret: bytes | None = None
         if topic.kind == "session_request" and request_like(msg.payload):
             charge = "session"
+        elif topic.kind == "services_request" and len(msg.payload) <= 1024:
+            charge = "session"  # a list request: as cheap to tell, as rare
         elif service:
             with self._lock:
                 known = self._keys.get((client, service))

@@ -11,15 +11,15 @@ backbone broker (every core connects there). It owns four objects, one per idea:
 - `ldm.core.sessions.Sessions`: participant sessions, each with a random pseudonym
   bound to its current ephemeral key (a new key, a new pseudonym: rotation);
 - `ldm.core.notices.Notices`: signed notices to participants, refusals within the
-  client's notice budget.
+  client's notice budget;
+- `ldm.core.routing.Router`: ciphertext between clusters and back, under pseudonyms.
 
-The core itself routes ciphertext (this module): participant input leaves the user
-cluster under its pseudonym only, replies come back by pseudonym and are mapped to the
-participant here; the service core remembers which core each pseudonym came from
-(`Route`). At the boundary it checks, in order, each cheaper than the next: the size
-limit, the topic, the clock skew, the session, the input's tag (a secret shared at the
-grant: untagged input never changes a session's key), the service, the key. Every
-refusal is counted and answered on the session topic; stale input is dropped.
+The core itself (this module) runs them: its lifecycle, which object each message
+goes to, and the user cluster's boundary, where it checks a participant's message in
+order, each check cheaper than the next: the size limit, the topic, the clock skew, the
+session, the input's tag (a secret shared at the grant: untagged input never changes a
+session's key), the service, the key. Every refusal is counted and answered on the
+session topic; stale input is dropped.
 
 Threads: paho's threads run `Core.sink` (admission, and cutting batches apart); the
 core's worker thread runs everything else, on what waited, in the fair queue's order.
@@ -46,9 +46,9 @@ from ldm.config import BrokerSettings, CoreConfig, build
 from ldm.core.admission import Admission, Admitted
 from ldm.core.budgets import Charge
 from ldm.core.notices import Notices, describe
+from ldm.core.routing import Router
 from ldm.core.services import Catalog
 from ldm.core.sessions import Sessions
-from ldm.core.state import Route
 from ldm.core.stats import CoreStats
 from ldm.ops.hops import Hops
 from ldm.security.identity import SigningKey
@@ -57,11 +57,11 @@ from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
-from ldm.wire.batch import Outbox
 from ldm.wire.messages import (
     CoreStatus,
     Envelope,
     ServiceDescription,
+    ServicesRequest,
     SessionNotice,
     SessionRequest,
 )
@@ -72,9 +72,6 @@ log = logging.getLogger(__name__)
 
 _CLUSTER = "cluster"
 _BACKBONE = "backbone"
-_UNREACHABLE = 1.0
-"""s: a backbone broker unreachable this long fails QoS 1/2 input for other clusters'
-services at once (``unavailable``), rather than after its timeout."""
 _PSEUDONYM = "~"  # (_PSEUDONYM, pseudonym): a pseudonym's lane; a client's is its id
 _DATA = frozenset({"provider_reply", "bb_input", "bb_reply"})
 """Single data messages a core receives: each waits in its pseudonym's lane."""
@@ -104,8 +101,6 @@ class Core(Worker[Event]):
         self.config = config
         self.name = config.name
         self.stats = CoreStats()
-        self.hops: Hops | None = None
-        """Set to note when each input passes this core (`ldm.hops`; `laas bench`)."""
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each participant message admitted on paho's threads
         (``admit``) and each event handled on the worker thread (``route``); None: not
@@ -145,10 +140,7 @@ class Core(Worker[Event]):
         self.sessions = Sessions(config, self.stats)
         self.admission = Admission(config, self.stats, self._clear, self.catalog.__contains__)
         self.notices = Notices(config, self.identity, self.cluster, self.admission)
-        self._routes: dict[str, Route] = {}
-        """Other clusters' pseudonyms -> the core their input came from (the worker's)."""
-        self._outbox = Outbox()
-        """The worker's: envelopes to forward, sent once it handled what waited."""
+        self.router = Router(config, self.stats, self.sessions, self.cluster, self.backbone)
 
     @classmethod
     def create(
@@ -188,6 +180,7 @@ class Core(Worker[Event]):
             status = CoreStatus(name=self.name, online=False).model_dump_json().encode()
             self.backbone.publish_and_wait(topics.bb_core(self.name), status, retain=True)
             self.backbone.stop()
+        self.catalog.clear_askers()
         self.cluster.publish_and_wait(topics.SERVICES, b"", retain=True)
         self.cluster.stop()
 
@@ -219,7 +212,16 @@ class Core(Worker[Event]):
     @property
     def route_count(self) -> int:
         """Pseudonyms of other clusters' participants whose replies this core routes."""
-        return len(self._routes)
+        return self.router.route_count
+
+    @property
+    def hops(self) -> Hops | None:
+        """Set to note when each input passes this core (`ldm.ops.hops`; `laas bench`)."""
+        return self.router.hops
+
+    @hops.setter
+    def hops(self, hops: Hops | None) -> None:
+        self.router.hops = hops
 
     # --- intake (paho's threads) ------------------------------------------------------
 
@@ -292,9 +294,7 @@ class Core(Worker[Event]):
                 finally:
                     timer("route", time.perf_counter() - started)
         finally:
-            self._outbox.flush()
-            self.stats.batches_sent = self._outbox.batches
-            self.stats.batched = self._outbox.batched
+            self.router.flush()
 
     def _handle(self, item: Event) -> None:
         if isinstance(item, Connected):
@@ -320,10 +320,7 @@ class Core(Worker[Event]):
         self.catalog.expire(now)
         for session in self.sessions.expire(now):
             self.notices.send(session.client, SessionNotice(kind="rotate", service=session.service))
-        cfg = self.config
-        for pseudonym, route in list(self._routes.items()):
-            if now - route.last_seen > cfg.idle_timeout + cfg.grace:
-                del self._routes[pseudonym]
+        self.router.expire(now)
         self.admission.forget(now, self.sessions)
         if self.admission.sweep_due(now):
             # The broker sends what is retained under the filter again, flagged retained:
@@ -349,7 +346,7 @@ class Core(Worker[Event]):
             self.catalog.local(topic.service, msg.payload)
         elif kind == "provider_reply":
             env = Envelope.model_validate_json(msg.payload)
-            self._reply(topic.service, topic.pseudonym, env, msg.payload)
+            self.router.reply(topic.service, topic.pseudonym, env, msg.payload)
         elif kind == "services":
             self.catalog.check_list(msg.payload)
         else:
@@ -363,11 +360,13 @@ class Core(Worker[Event]):
             self.catalog.core_status(msg.payload)
         elif kind == "bb_input":
             env = Envelope.model_validate_json(msg.payload)
-            self._remote_input(topic, env, msg.payload)
+            svc = self.catalog.get(topic.service)
+            local = svc is not None and svc.origin == self.name
+            self.router.remote_input(topic, env, msg.payload, local)
         elif kind == "bb_reply":
             env = Envelope.model_validate_json(msg.payload)
-            if not self._stale(env):
-                self._deliver(topic.service, topic.pseudonym, env)
+            if not self.router.stale(env):
+                self.router.deliver(topic.service, topic.pseudonym, env)
         else:
             self.stats.dropped_invalid += 1
 
@@ -383,9 +382,14 @@ class Core(Worker[Event]):
         """
         client, service = topic.client, topic.service
         is_session = topic.kind == "session_request"
+        is_list = topic.kind == "services_request"
         admitted = msg if isinstance(msg, Admitted) else None
         charge: Charge = (
-            admitted.charge if admitted is not None else "session" if is_session else "other"
+            admitted.charge
+            if admitted is not None
+            else "session"
+            if is_session or is_list
+            else "other"
         )
         cfg = self.config
         if admitted is not None and admitted.refused:
@@ -399,12 +403,19 @@ class Core(Worker[Event]):
             error = f"payload: {len(msg.payload)} bytes is over the limit of {cfg.max_payload}"
             self.notices.reject(charge, client, service, "too_large", error)
             return
-        if not is_session and topic.kind != "participant_input":
+        if not (is_session or is_list or topic.kind == "participant_input"):
             self.stats.dropped_invalid += 1
-            error = f"topic: {msg.topic!r} is neither .../up/session nor .../up/data/SERVICE"
+            error = (
+                f"topic: {msg.topic!r} is none of .../up/session, .../up/services "
+                "and .../up/data/SERVICE"
+            )
             self.notices.reject(charge, client, service, "invalid", error)
             return
         try:
+            if is_list:
+                ServicesRequest.model_validate_json(msg.payload)
+                self.catalog.send_to(client, time.time())
+                return
             if is_session:
                 request = SessionRequest.model_validate_json(msg.payload)
                 self._session_request(charge, client, request)
@@ -417,7 +428,9 @@ class Core(Worker[Event]):
                     return
         except ValidationError as exc:
             self.stats.dropped_invalid += 1
-            what = "session request" if is_session else "input envelope"
+            what = (
+                "list request" if is_list else "session request" if is_session else "input envelope"
+            )
             error = f"{what}: {describe(exc)}"
             self.notices.reject(charge, client, service, "invalid", error, payload=msg.payload)
             return
@@ -452,7 +465,7 @@ class Core(Worker[Event]):
             )
             self.notices.reject(charge, client, service, "clock", error, c=env.c)
             return False
-        if self._stale(env):
+        if self.router.stale(env):
             return False
         session = self.sessions.get(client, service)
         if session is None or env.k is None:
@@ -480,117 +493,11 @@ class Core(Worker[Event]):
             )
             self.notices.reject(charge, client, service, "rate_limited", error, c=env.c)
             return False
-        payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
-        if self.hops is not None:
-            self.hops.mark("sent", env.c, env.t)
-            self.hops.mark("user_core", env.c, now)
-        if svc.origin == self.name:
-            self._outbox.add(
-                self.cluster, topics.provider_input_batch(service), pseudonym, payload, cfg.data_qos
-            )
-        elif self.backbone is not None:
-            problem = self._backbone_problem(now, service)
-            if problem is not None:
-                self.stats.rejected_unavailable += 1
-                # Answered whatever the notice bucket holds: the input is authentic (its
-                # tag was checked) and paid for, and an unanswered one would be lost
-                # silently until it times out.
-                self.notices.reject(
-                    charge, client, service, "unavailable", problem, c=env.c, paid=True
-                )
-                return session.current is not before
-            self._outbox.add(
-                self.backbone,
-                topics.bb_input_batch(svc.origin, service, self.name),
-                pseudonym,
-                payload,
-                cfg.data_qos,
-            )
-        else:
-            self.stats.dropped_unroutable += 1
-            return False
-        self.stats.forwarded_in += 1
+        problem = self.router.forward_input(svc.origin, service, pseudonym, env, now)
+        if problem is not None:
+            self.stats.rejected_unavailable += 1
+            # Answered whatever the notice bucket holds: the input is authentic (its tag
+            # was checked) and paid for, and an unanswered one would be lost silently
+            # until it times out.
+            self.notices.reject(charge, client, service, "unavailable", problem, c=env.c, paid=True)
         return session.current is not before
-
-    def _backbone_problem(self, now: float, service: str) -> str | None:
-        """Why input for `service`, on another cluster, cannot leave now: the backbone
-        broker is unreachable (at QoS 0, which the transport does not hold, at once; at
-        QoS 1/2, which it holds for the reconnect, after ``_UNREACHABLE`` s). None when
-        it can. (A broker that is connected but slow to acknowledge, as NATS while it
-        elects leaders, still gets QoS 1/2 input: it is stored and delivered late.)"""
-        backbone = self.backbone
-        if backbone is None:
-            return None
-        down = backbone.down_since
-        if down is None or (self.config.data_qos > 0 and now - down < _UNREACHABLE):
-            return None
-        return (
-            f"service {service!r} is in another cluster and this core's backbone broker "
-            f"has been unreachable for {now - down:.1f} s ({backbone.problem}): nothing "
-            "reaches it now; send again later"
-        )
-
-    # --- ciphertext between clusters and back -----------------------------------------
-
-    def _stale(self, env: Envelope) -> bool:
-        if time.time() - env.t > self.config.max_age:
-            self.stats.dropped_stale += 1
-            return True
-        return False
-
-    def _remote_input(self, topic: topics.Topic, env: Envelope, payload: bytes) -> None:
-        """Input from another cluster's participant, to this cluster's provider; its
-        core is remembered for the replies."""
-        if self._stale(env):
-            return
-        if self.hops is not None:
-            self.hops.mark("service_core", env.c)
-        svc = self.catalog.get(topic.service)
-        if svc is None or svc.origin != self.name:
-            self.stats.dropped_unroutable += 1
-            return
-        self._routes[topic.pseudonym] = Route(topic.user_core, time.time())
-        self._forward(
-            self.cluster, topics.provider_input_batch(topic.service), topic.pseudonym, env, payload
-        )
-        self.stats.forwarded_in += 1
-
-    def _reply(self, service: str, pseudonym: str, env: Envelope, payload: bytes) -> None:
-        """A local provider replied: to a local participant, or back over the backbone
-        (`payload`, the envelope's bytes as the provider sent them)."""
-        if self._stale(env):
-            return
-        if self.sessions.of(pseudonym) is not None:
-            self._deliver(service, pseudonym, env)
-            return
-        route = self._routes.get(pseudonym)
-        if route is None or self.backbone is None:
-            self.stats.dropped_unroutable += 1
-            return
-        self._forward(
-            self.backbone, topics.bb_reply_batch(route.user_core, service), pseudonym, env, payload
-        )
-        self.stats.forwarded_out += 1
-
-    def _forward(
-        self, to: Transport, batch_topic: str, pseudonym: str, env: Envelope, payload: bytes
-    ) -> None:
-        """Forward an envelope as the bytes it came in (decoded, checked, not encoded
-        again), unless they hold a newline, which a batch line cannot: then as encoded."""
-        if b"\n" in payload:
-            payload = env.encode()
-        self._outbox.add(to, batch_topic, pseudonym, payload, self.config.data_qos)
-
-    def _deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
-        """A fresh reply (the caller checked its age) to the participant of a pseudonym."""
-        session = self.sessions.of(pseudonym)
-        if session is None or session.service != service:
-            self.stats.dropped_unroutable += 1
-            return
-        reply = Envelope(c=env.c, t=env.t, d=env.d).encode()
-        self.cluster.publish(
-            topics.participant_reply(session.client, service), reply, self.config.data_qos
-        )
-        if self.hops is not None:
-            self.hops.mark("delivered", env.c)
-        self.stats.forwarded_out += 1

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import OrderedDict
 
 from pydantic import TypeAdapter
 
@@ -27,6 +28,7 @@ from ldm.security.trust import Trust
 from ldm.transport.mqtt import Transport
 from ldm.wire import topics
 from ldm.wire.messages import (
+    LIST_REFRESH,
     Announcement,
     CoreStatus,
     ServiceDescription,
@@ -42,6 +44,7 @@ _ANNOUNCE_OR_WITHDRAW: TypeAdapter[Announcement | Withdrawal] = TypeAdapter(
     Announcement | Withdrawal
 )
 _REPAIR_RATE = 5.0  # service-list repairs per second: a second core on the broker cannot loop us
+_MAX_ASKERS = 100_000  # clients sent each change of the list; the longest silent is dropped
 
 
 class Catalog:
@@ -72,6 +75,8 @@ class Catalog:
         self._list_payload = b""  # the retained list as this core last published it
         self._repairs = Bucket(_REPAIR_RATE, 0.0)
         self._repair_owed = False  # a foreign list was seen and not yet replaced (`repair`)
+        self._askers: OrderedDict[str, float] = OrderedDict()
+        """Client -> when it last asked for the list (`send_to`), the longest ago first."""
 
     def get(self, service: str) -> ServiceEntry | None:
         return self._services.get(service)
@@ -95,6 +100,24 @@ class Catalog:
     def own(self) -> list[str]:
         """The services this core's own providers offer."""
         return [n for n, s in list(self._services.items()) if s.origin == self._name]
+
+    def send_to(self, client: str, now: float) -> None:
+        """A participant asked for the list (``ServicesRequest``): send it on the
+        client's own topic, now and at each change for ``3 * LIST_REFRESH`` s (the
+        participant asks again within ``LIST_REFRESH``). Where the broker's ACL lets a
+        participant read only its own topics, this is how it gets the list."""
+        self._stats.control += 1
+        self._askers.pop(client, None)
+        self._askers[client] = now
+        if len(self._askers) > _MAX_ASKERS:
+            self._askers.popitem(last=False)
+        if self._list_payload:
+            self._cluster.publish(topics.services_reply(client), self._list_payload, qos=1)
+
+    def clear_askers(self) -> None:
+        """The core stops: an empty list to each client that asked (as on ``ldm/services``)."""
+        for client in self._askers:
+            self._cluster.publish(topics.services_reply(client), b"", qos=1)
 
     def connected(self) -> None:
         """The cluster broker (re)connected: publish the list again."""
@@ -300,6 +323,9 @@ class Catalog:
         for name in [n for n, last in self._latest.items() if last[2] + ttl <= now]:
             if name not in self._services:
                 del self._latest[name]
+        askers = self._askers
+        while askers and next(iter(askers.values())) < now - 3 * LIST_REFRESH:
+            askers.popitem(last=False)
 
     def publish_list(self) -> None:
         services = sorted((s.description for s in self._services.values()), key=lambda d: d.name)
@@ -312,6 +338,8 @@ class Catalog:
         listing = listing.model_copy(update={"sig": self._identity.sign(listing.signed_text())})
         self._list_payload = listing.model_dump_json().encode()
         self._cluster.publish(topics.SERVICES, self._list_payload, qos=1, retain=True)
+        for client in self._askers:
+            self._cluster.publish(topics.services_reply(client), self._list_payload, qos=1)
 
     def check_list(self, payload: bytes) -> None:
         """The retained list on the cluster must be this core's: if not, publish it again.

@@ -59,6 +59,8 @@ def test_the_document_follows_the_topics_and_the_models() -> None:
     c, s, p = "{client}", "{service}", "{pseudonym}"
     assert {
         topics.SERVICES,
+        topics.services_request(c),
+        topics.services_reply(c),
         topics.session_request(c),
         topics.session_notice(c),
         topics.participant_input(c, s),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -18,8 +19,10 @@ from laas.run.bench import (
     STAGES,
     BenchConfig,
     bench_scenario,
+    format_loads,
     format_report,
     run_bench,
+    run_loads,
 )
 from laas.sim.scenario import ErrorModel, simulate
 from ldm.local.pytest_plugin import need_mosquitto
@@ -78,6 +81,25 @@ def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> Non
     assert json.loads(json.dumps(report.as_dict()))["share_answered"] == 1.0
     assert any("sessions open" in line for line in lines)
     assert "queue wait in the worker" in text and "CPU s per 1,000 fixes" in text
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_bench_reports_the_aligned_and_the_spread_load_together() -> None:
+    """`laas bench --both`: the load on the whole second, then spread over it, each on
+    its own deployment, every fix answered in both, one row each in one report."""
+    config = BenchConfig(
+        participants=4, rate=2.0, duration=2.0, brokers="embedded", processes=1, privacy=False
+    )
+    aligned, spread = run_loads(replace(config, spread=True))
+    assert (aligned.spread, spread.spread) == (False, True)
+    for report in (aligned, spread):
+        assert report.sent >= 4 * 2 * 2 and report.answered == report.sent, report.errors
+    text = format_loads([aligned, spread])
+    answered = [line.split("  ")[0] for line in text.splitlines() if "100.0 %" in line]
+    assert answered == ["on the whole second", "spread over the second"], text
+    cpu = text.split("CPU s per 1,000 fixes", 1)[1].splitlines()[1:3]
+    assert [line.split("  ")[0] for line in cpu] == answered, text
 
 
 def test_bench_participants_stay_on_the_road(hamburg_map: HdMap) -> None:

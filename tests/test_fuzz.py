@@ -142,7 +142,15 @@ BOB_KEY = KeyPair()  # the fuzzed participant's current ephemeral key
 @pytest.fixture(scope="module")
 def core(provider_key: KeyPair) -> Iterator[Core]:
     """A single-cluster core that knows `echo` and holds alice's and bob's sessions."""
-    c = Core.create("fuzz", UNREACHABLE, rate=1e9, burst=1e9, max_payload=4096, service_ttl=3600)
+    c = Core.create(
+        "fuzz",
+        UNREACHABLE,
+        rate=1e9,
+        burst=1e9,
+        max_payload=4096,
+        service_ttl=3600,
+        rotation_period=3600,  # a key change stays refused however long the fuzz runs
+    )
     description = ServiceDescription(**SPEC.model_dump(), public_key=provider_key.public)
     announcement = Announcement(service=description, t=time.time())  # lives service_ttl
     c.handle(cluster("ldm/svc/echo/announce", announcement.model_dump_json().encode()))
@@ -161,9 +169,10 @@ def cluster(topic: str, payload: bytes) -> Message:
 
 
 def alice_state(core: Core) -> tuple[object, ...]:
-    session = core._sessions[("alice", "echo")]
-    names = tuple(p.name for p in [session.current, *session.old] if p is not None)
-    return names, tuple(sorted(n for n, s in core._pseudonyms.items() if s is session))
+    session = core.sessions.get("alice", "echo")
+    assert session is not None
+    names = tuple(core.sessions.pseudonyms(session))
+    return names, tuple(sorted(n for n in names if core.sessions.of(n) is session))
 
 
 def core_outcomes(core: Core) -> int:
@@ -212,8 +221,10 @@ def test_core_participant_input_decoder(core: Core, batch: list[tuple[bytes, str
         core.handle(cluster(f"ldm/p/bob/up/data/{service}", payload))
         assert core_outcomes(core) == outcomes + 1
     assert alice_state(core) == before
-    bob = core._sessions[("bob", "echo")]
-    assert bob.current is not None and bob.current.key == BOB_KEY.public  # no churn
+    bob = core.sessions.get("bob", "echo")
+    assert (
+        bob is not None and bob.current is not None and bob.current.key == BOB_KEY.public
+    )  # no churn
 
 
 def test_the_input_fuzz_reaches_forwarding(core: Core) -> None:
@@ -240,8 +251,8 @@ def test_core_session_request_decoder(core: Core, batch: list[tuple[bytes, str]]
         core.handle(cluster(f"ldm/p/{client}/up/session", payload))
         assert core_outcomes(core) == outcomes + 1
     assert alice_state(core) == before
-    assert all(s.service == "echo" for s in core._sessions.values())  # only known services
-    assert len(core._sessions) <= 5  # alice, bob, plus at most one per client
+    assert all(s.service == "echo" for s in core.sessions)  # only known services
+    assert len(core.sessions) <= 5  # alice, bob, plus at most one per client
 
 
 @FUZZ
@@ -291,7 +302,8 @@ def test_core_backbone_and_announcement_decoders(
         assert core_outcomes(core) == outcomes + 1, (topic, payload)
     assert alice_state(core) == before
     assert "echo" in {s.name for s in core.services}  # nobody else's service is removed
-    assert core._services["echo"].origin == "fuzz"
+    entry = core.catalog.get("echo")
+    assert entry is not None and entry.origin == "fuzz"
 
 
 # --- the provider's input decoder --------------------------------------------------

@@ -226,7 +226,7 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 
 
 def _cmd_bench(a: argparse.Namespace) -> int:
-    from laas.run.bench import BenchConfig, format_report, run_bench
+    from laas.run.bench import BenchConfig, format_loads, format_report, run_bench, run_loads
 
     if a.worker_only:
         return _bench_worker_only(a)
@@ -243,7 +243,16 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         privacy=not a.no_privacy,
         workers=a.workers,
     )
-    report = run_bench(config, progress=lambda line: print(line, file=sys.stderr, flush=True))
+
+    def progress(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    if a.both:
+        reports = run_loads(config, progress)
+        loads = {"loads": [r.as_dict() for r in reports]}
+        print(json.dumps(loads, indent=1) if a.json else format_loads(reports))
+        return 0 if all(r.answered for r in reports) else 1
+    report = run_bench(config, progress)
     print(json.dumps(report.as_dict(), indent=1) if a.json else format_report(report))
     return 0 if report.answered else 1
 
@@ -584,6 +593,14 @@ def _add_demo_and_bench(sub: Any) -> None:
         help=(
             "spread each participant's fixes over the second (default: all on the whole "
             "second, as GNSS receivers emit them)"
+        ),
+    )
+    p.add_argument(
+        "--both",
+        action="store_true",
+        help=(
+            "run the load on the whole second, then spread over it, each on a deployment "
+            "of its own, and report the two together (--spread is then ignored)"
         ),
     )
     p.add_argument(

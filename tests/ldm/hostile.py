@@ -62,6 +62,7 @@ from ldm.wire.messages import (
     Envelope,
     ServiceDescription,
     ServiceList,
+    ServicesRequest,
     SessionGrant,
     SessionNotice,
     SessionRequest,
@@ -305,11 +306,22 @@ class Attacker(Recorder):
 
     # -- what it learns
 
+    def ask_for_list(self) -> None:
+        """Ask the core for the service list on its own topics, as a participant does
+        (where the ACL lets it read no other, that is how the list comes)."""
+        asked = ServicesRequest(t=time.time()).model_dump_json().encode()
+        self.transport.publish(f"ldm/p/{self.client_id}/up/services", asked, qos=1)
+
     def genuine_list_payloads(self) -> list[bytes]:
-        """Every non-empty service list it received that it did not forge, in order."""
+        """Every non-empty service list it received that it did not forge, in order
+        (on ``ldm/services`` or its own list topic)."""
         mine = {p for t, p in self.published if t == "ldm/services"}
         return [
-            m.payload for m in self.messages("ldm/services") if m.payload and m.payload not in mine
+            m.payload
+            for m in self.messages()
+            if m.topic in ("ldm/services", f"ldm/p/{self.client_id}/down/services")
+            and m.payload
+            and m.payload not in mine
         ]
 
     def genuine_lists(self) -> list[ServiceList]:
@@ -943,6 +955,7 @@ class HostileDeployment:
         self.attacker: Attacker = self._recorder(Attacker(self.account(self.user, ATTACKER)))
         pins = {ECHO.name: self.identity.public} if self.trust else {}
         self.user_core = self._core("user-edge", self.user, CORE_USER, pins)
+        self.attacker.ask_for_list()  # once the core listens, as a participant does
         self.service_core = self._core("svc-cluster", self.service, CORE_SERVICE, pins)
         self.echo = EchoService()
         config = build(
@@ -981,7 +994,8 @@ class HostileDeployment:
         return core
 
     def _listed(self, recorder: Recorder) -> bool:
-        for m in recorder.messages("ldm/services"):
+        lists = recorder.messages("ldm/services") + recorder.messages("ldm/p/+/down/services")
+        for m in lists:
             with contextlib.suppress(ValueError):
                 if any(
                     s.name == ECHO.name for s in ServiceList.model_validate_json(m.payload).services

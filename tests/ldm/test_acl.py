@@ -2,14 +2,26 @@
 
 from __future__ import annotations
 
+import shutil
+import socket
+import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
 from ldm.config import BrokerSettings
-from ldm.local.brokers import MosquittoBroker, mosquitto_acl, wait_for
+from ldm.local.brokers import (
+    MosquittoBroker,
+    find_mosquitto,
+    free_port,
+    mosquitto_acl,
+    wait_for,
+)
 from ldm.local.pytest_plugin import need_mosquitto
+from ldm.ops.passwd import password_line, random_password
 from ldm.transport.mqtt import Event, Message, Transport
 from ldm.wire.messages import Envelope, SessionRequest
 
@@ -66,3 +78,84 @@ def test_a_participant_cannot_read_or_write_another_participants_topics() -> Non
             alice.stop()
             provider.stop()
             core.stop()
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _listening(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def shipped_user_broker(
+    directory: Path, port: int, accounts: dict[str, str], acl_extra: str = ""
+) -> Path:
+    """The user-cluster broker as compose runs it: the shipped mosquitto.conf and
+    deploy/security/acl-user-cluster (plus `acl_extra`), on `port` of 127.0.0.1, its
+    files in `directory`."""
+    acl = (ROOT / "deploy/security/acl-user-cluster").read_text() + acl_extra
+    (directory / "acl").write_text(acl)
+    lines = [password_line(user, password) for user, password in accounts.items()]
+    (directory / "passwd").write_text("\n".join(lines) + "\n")
+    config = (ROOT / "mosquitto.conf").read_text()
+    assert "\nlistener 1883\n" in config and "/mosquitto/config/" in config
+    config = config.replace("\nlistener 1883\n", f"\nlistener {port} 127.0.0.1\n")
+    config = config.replace("/mosquitto/config/", f"{directory}/")
+    path = directory / "mosquitto.conf"
+    path.write_text(config)
+    for file in directory.iterdir():
+        file.chmod(0o644)
+    directory.chmod(0o755)  # mosquitto started as root reads them as "mosquitto"
+    return path
+
+
+@pytest.mark.mosquitto
+def test_the_shipped_user_broker_starts_without_warnings_and_lists_services() -> None:
+    """Mosquitto with the shipped config and ACL says nothing at start (it warned about
+    a pattern for ``ldm/services`` naming no %u), and a participant, which may read
+    only its own topics there, still gets the service list: its core sends it there,
+    also to a participant that asked before the core was up."""
+    need_mosquitto()
+    binary = find_mosquitto()
+    assert binary is not None
+    port = free_port()
+    accounts = {name: random_password() for name in ("ldm-core-user", "svc-echo", "alice")}
+    # A provider in this cluster, for something to list, with the rights the service
+    # cluster's ACL gives its worker.
+    provider_acl = "user svc-echo\ntopic readwrite ldm/svc/echo/#\ntopic read ldm/services\n"
+    # Not pytest's tmp_path: mosquitto started as root reads its files as "mosquitto",
+    # which cannot enter pytest's private folder.
+    directory = Path(tempfile.mkdtemp(prefix="ldm-shipped-"))
+    config = shipped_user_broker(directory, port, accounts, provider_acl)
+    broker = subprocess.Popen(
+        [binary, "-c", str(config)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    url = f"mqtt://127.0.0.1:{port}"
+
+    def account(name: str) -> BrokerSettings:
+        return BrokerSettings(url=url, username=name, password=accounts[name])
+
+    started: list[Core | Provider | Participant] = []
+    try:
+        assert wait_for(lambda: _listening(port), 10), "mosquitto did not start"
+        core = Core.create("user", account("ldm-core-user"))
+        # alice connects first: she asks again (after 1 s, 2 s, ...) until the core answers
+        alice = Participant.create(account("alice"), core_key=core.public_key)
+        started.append(alice.start(timeout=5))
+        time.sleep(0.5)
+        started.append(core.start(timeout=5))
+        provider = Provider.create(account("svc-echo"), ECHO, EchoService(), announce_interval=0.3)
+        started.append(provider.start(timeout=5))
+        assert wait_for(has_service(alice, "echo"), 5), "the list never reached alice"
+        assert alice.open("echo").request({"n": 1}) == {"echo": {"n": 1}}
+    finally:
+        for part in reversed(started):
+            part.stop()
+        broker.terminate()
+        log = broker.communicate(timeout=10)[0].decode()
+        shutil.rmtree(directory, ignore_errors=True)
+    assert "Warning" not in log and "Error" not in log, log

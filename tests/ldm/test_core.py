@@ -8,14 +8,14 @@ from collections.abc import Iterator
 
 import pytest
 
-from ldm import Core, KeyPair, Provider
+from ldm import Core, KeyPair, Participant, Provider, RequestRejected
 from ldm.config import BrokerSettings
 from ldm.local.brokers import MosquittoBroker, wait_for
 from ldm.local.pytest_plugin import need_mosquitto
 from ldm.transport.mqtt import Event, Message, Transport
 from ldm.wire.messages import Envelope, SessionNotice, SessionRequest
 
-from .deployment import ECHO, EchoService
+from .deployment import ECHO, EchoService, has_service
 
 
 class RawParticipant:
@@ -96,3 +96,36 @@ def test_rotate_is_repeated_until_a_new_key_comes_and_keys_cannot_churn(
         assert core.stats.rotations == 1
     finally:
         raw.transport.stop()
+
+
+@pytest.mark.mosquitto
+def test_a_participant_restarted_under_its_name_is_answered_and_cannot_churn_keys() -> None:
+    """A bridge restarted under the same client id within ``rekey_interval`` (30 s
+    here) comes back with a new ephemeral key: its fresh grant lets that key in. A
+    second restart at once is refused: fresh grants do not raise how many keys a
+    session may take in the long run (one per ``rekey_interval``), only let one in early."""
+    need_mosquitto()
+    with MosquittoBroker() as broker:
+        core = Core.create("edge", broker.url).start(timeout=5)
+        provider = Provider.create(broker.url, ECHO, EchoService(), announce_interval=0.3)
+        provider.start(timeout=5)
+        try:
+            answers: list[object] = []
+            for run in range(3):
+                p = Participant.create(broker.url, client_id="gpsd-1", max_age=2.0)
+                p.start(timeout=5)
+                try:
+                    assert wait_for(has_service(p, "echo"), 5)
+                    session = p.open("echo")
+                    assert session.grant.rekey_interval == 30.0
+                    try:
+                        answers.append(session.request({"run": run}, timeout=5))
+                    except RequestRejected as exc:
+                        answers.append(exc.reason)
+                finally:
+                    p.stop()
+            assert answers == [{"echo": {"run": 0}}, {"echo": {"run": 1}}, "rate_limited"]
+            assert core.stats.rejected_rekey == 1
+        finally:
+            provider.stop()
+            core.stop()

@@ -143,10 +143,12 @@ def test_pinned_participants_act_only_on_what_is_signed(
         mallory.publish("ldm/services", forged.model_dump_json().encode(), retain=True)
         assert wait_for(lambda: core.stats.repaired_list >= 1, 5)  # after the empty payload
         assert [s.public_key for s in core.services] == [provider.key.public]
-        assert wait_for(lambda: mallory.seen and mallory.seen[-1].payload == core._list_payload, 5)
+        assert wait_for(
+            lambda: mallory.seen and mallory.seen[-1].payload == core.catalog.list_payload, 5
+        )
         fresh = _Raw(broker.url, "ldm/services")
         assert wait_for(lambda: bool(fresh.seen), 5)
-        assert fresh.seen[-1].payload == core._list_payload
+        assert fresh.seen[-1].payload == core.catalog.list_payload
         fresh.transport.stop()
         assert [s.name for s in alice.services()] == ["echo"]
         # A participant pinning another identity for echo does not trust it.

@@ -21,7 +21,7 @@ import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
 from ldm.config import BrokerSettings
-from ldm.core.core import CoreStats
+from ldm.core.stats import CoreStats
 from ldm.local.brokers import MosquittoBroker, RunningBroker, mosquitto_acl, start_broker, wait_for
 from ldm.local.floodbench import format_report, run_flood_bench
 from ldm.local.pytest_plugin import need_mosquitto
@@ -229,16 +229,16 @@ def test_retained_and_empty_participant_messages_are_dropped_at_intake(edge: Cor
     up(edge, "mallory", "data/echo", data(KeyPair(), "r1"), retain=True)
     up(edge, "mallory", "data/echo", b"")  # the echo of the core's own clearing
     assert edge.stats.dropped_retained == 2
-    assert edge._intake.qsize() == 0 and not edge._limits  # not input: no bucket charged
+    assert edge._intake.qsize() == 0 and not edge.admission.clients  # not input: no bucket charged
 
 
 def test_the_tick_forgets_full_buckets_and_gone_sessions(edge: Core) -> None:
     up(edge, "alice", "session", request("a0"))
     up(edge, "alice", "data/echo", data(ALICE, "a1"))
     handle_all(edge)
-    assert "alice" in edge._limits and ("alice", "echo") in edge._keys
+    assert "alice" in edge.admission.clients and ("alice", "echo") in edge.admission.sessions
     edge.tick(time.time() + 3600.0)  # idle: the session expires, the buckets refill
-    assert not edge._limits and not edge._keys
+    assert not edge.admission.clients and not edge.admission.sessions
 
 
 # --- real brokers ---------------------------------------------------------------------

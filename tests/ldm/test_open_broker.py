@@ -120,7 +120,7 @@ def test_a_replayed_genuine_announcement_diverts_nothing(d: HostileDeployment) -
     finally:
         replayer.stop()
     assert replayer.runs >= 3
-    origins = {(s.name, e.origin) for s in [d.user_core] for e in s._services.values()}
+    origins = {(s.name, e.origin) for s in [d.user_core] for e in s.catalog.entries()}
     assert origins == {("user-edge", "svc-cluster")}, origins
     assert_served(load, window)
     cleared = [m for m in d.backbone_witness.messages("ldm/bb/announce/echo") if not m.payload]

@@ -46,7 +46,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -84,8 +84,10 @@ __all__ = [
     "Latency",
     "PrivacyRun",
     "bench_scenario",
+    "format_loads",
     "format_report",
     "run_bench",
+    "run_loads",
 ]
 
 ROTATION_OFF = 1e9  # s: longer than any run
@@ -778,20 +780,79 @@ def format_report(r: BenchReport) -> str:
             f"CPU s per 1,000 fixes: participants {cpu['participants']:.2f}, "
             f"cores {cpu['cores']:.2f}, worker {cpu['worker']:.2f} (brokers not counted)",
         ]
-    if r.privacy:
-        lines += ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]
-        for p in r.privacy:
-            label = (
-                "rotation off"
-                if p.rotation_period == ROTATION_OFF
-                else (f"rotation every {p.rotation_period:g} s")
-            )
-            lines.append(
-                f"  {label:<26} accuracy {p.accuracy:.3f}, AED {p.aed:.2f} m, "
-                f"{p.answered}/{p.fixes} answered, {p.rotations} rotations"
-            )
-        if r.privacy[0].rotations == 0:
-            lines.append("  (the scenario lasts 100 s: shorter than this period, so no rotation)")
+    lines += _privacy_lines(r)
     for error in r.errors[:5]:
         lines.append(f"  e.g. {error}")
     return "\n".join(lines)
+
+
+def run_loads(config: BenchConfig, progress: Progress | None = None) -> list[BenchReport]:
+    """The load on the whole second, then spread over it (`BenchConfig.spread` is
+    ignored), each on a deployment of its own; the privacy runs (if any) after the
+    second only."""
+    aligned = run_bench(replace(config, spread=False, privacy=False), progress)
+    return [aligned, run_bench(replace(config, spread=True), progress)]
+
+
+def format_loads(reports: Sequence[BenchReport]) -> str:
+    """The loads of `run_loads` side by side: answers, round trips and CPU per 1,000
+    fixes by kind of process, one row each; then the privacy runs of the last."""
+    first = reports[0]
+    served = "the laas worker" if first.workers == 1 else f"{first.workers} regional laas workers"
+    lines = [
+        f"laas bench: {first.participants} participants at {first.rate:g} Hz for "
+        f"{first.duration:g} s through 3 {first.brokers} brokers, 2 LDM cores and {served}, "
+        "each load on a deployment of its own (floor: MQTT echo over the user broker)",
+        "",
+        f"{'load':<24}{'answered':>10}{'LDM p50':>9}{'p95':>9}{'p99':>9}{'bare p50':>10}"
+        f"{'p99':>9}{'LDM/bare':>10}",
+    ]
+    for r in reports:
+        lines.append(
+            f"{_load_name(r):<24}{100 * r.share_answered:>8.1f} %{r.ldm.p50:>9.2f}"
+            f"{r.ldm.p95:>9.2f}{r.ldm.p99:>9.2f}{r.bare.p50:>10.2f}{r.bare.p99:>9.2f}"
+            f"{r.overhead:>9.1f}x"
+        )
+    kinds = list(dict.fromkeys(k for r in reports for k in r.cpu_per_1000()))
+    lines += ["", f"{'CPU s per 1,000 fixes':<24}" + "".join(f"{k:>14}" for k in kinds)]
+    lines[-1] += f"{'total':>9}"
+    for r in reports:
+        cpu = r.cpu_per_1000()
+        row = "".join(f"{cpu.get(k, math.nan):>14.3f}" for k in kinds)
+        lines.append(f"{_load_name(r):<24}{row}{sum(cpu.values()):>9.3f}")
+    lines.append("(round trips in ms; cores: the process of both cores; brokers from /proc)")
+    for r in reports:
+        lost = r.sent - r.answered
+        if lost or r.dropped_stale:
+            lines.append(
+                f"{_load_name(r)}: {r.error_replies} error replies, {r.lost} without reply, "
+                f"{r.dropped_stale} dropped as stale by the cores"
+            )
+        for error in r.errors[:3]:
+            lines.append(f"  e.g. {error}")
+    lines += _privacy_lines(reports[-1])
+    return "\n".join(lines)
+
+
+def _privacy_lines(r: BenchReport) -> list[str]:
+    """The cost of privacy, from the two Hamburg runs (none: no lines)."""
+    if not r.privacy:
+        return []
+    lines = ["", "cost of privacy (Hamburg scenario, lane accuracy against the truth):"]
+    for p in r.privacy:
+        label = (
+            "rotation off"
+            if p.rotation_period == ROTATION_OFF
+            else (f"rotation every {p.rotation_period:g} s")
+        )
+        lines.append(
+            f"  {label:<26} accuracy {p.accuracy:.3f}, AED {p.aed:.2f} m, "
+            f"{p.answered}/{p.fixes} answered, {p.rotations} rotations"
+        )
+    if r.privacy[0].rotations == 0:
+        lines.append("  (the scenario lasts 100 s: shorter than this period, so no rotation)")
+    return lines
+
+
+def _load_name(r: BenchReport) -> str:
+    return "spread over the second" if r.spread else "on the whole second"

@@ -45,9 +45,11 @@ from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
 from ldm.transport.worker import Worker
 from ldm.wire import topics
 from ldm.wire.messages import (
+    LIST_REFRESH,
     Envelope,
     ServiceDescription,
     ServiceList,
+    ServicesRequest,
     SessionGrant,
     SessionNotice,
     SessionRequest,
@@ -59,6 +61,7 @@ __all__ = ["Participant", "Session"]
 Payload = dict[str, Any]
 
 
+_FIRST_ASK_RETRY = 1.0  # s: an unanswered list request is sent again after this, doubling
 _MAX_REQUESTS = 64  # session requests awaiting their grant, remembered at once
 
 
@@ -379,6 +382,9 @@ class Participant(Worker[Event]):
         )
         self._services: list[ServiceDescription] = []
         self._list_t = 0.0  # time of the newest signed service list taken
+        self._next_ask = float("inf")  # when to ask the core for the list again
+        self._ask_wait = _FIRST_ASK_RETRY  # s until then, while the core has not answered
+        self._list_answered = False  # a list came on this client's own topic since the ask
         self._have_list = threading.Event()
         self.trust = Trust(config.service_keys, config.anchors)
         self._distrusted: dict[str, str] = {}  # service -> why its last grant was refused
@@ -555,6 +561,7 @@ class Participant(Worker[Event]):
 
     def handle(self, item: Event) -> None:
         if isinstance(item, Connected):
+            self._ask_services(time.time())
             return
         try:
             self._message(item)
@@ -566,7 +573,12 @@ class Participant(Worker[Event]):
             self._service_list(msg.payload)
             return
         topic = topics.parse(msg.topic)
-        if topic.kind == "session_notice":
+        if topic.kind == "services_reply":
+            self._list_answered = True
+            self._ask_wait = _FIRST_ASK_RETRY
+            self._next_ask = time.time() + LIST_REFRESH
+            self._service_list(msg.payload)
+        elif topic.kind == "session_notice":
             notice = SessionNotice.model_validate_json(msg.payload)
             if self._authentic(notice):
                 self._notice(notice)
@@ -590,6 +602,19 @@ class Participant(Worker[Event]):
             and abs(time.time() - notice.t) <= self.config.notice_window
             and verify(key, notice.signed_text(), notice.sig)
         )
+
+    def _ask_services(self, now: float) -> None:
+        """Ask the core for the service list on this client's own topics (at each
+        connect, and every `LIST_REFRESH` s): where the broker's ACL lets a participant
+        read only its own topics, that is how the list comes (also as it changes).
+        Unanswered (no core yet), it asks again after 1 s, then twice as long each
+        time, up to `LIST_REFRESH`."""
+        self._next_ask = now + (LIST_REFRESH if self._list_answered else self._ask_wait)
+        if not self._list_answered:
+            self._ask_wait = min(LIST_REFRESH, 2 * self._ask_wait)
+        self._list_answered = False
+        request = ServicesRequest(t=now).model_dump_json().encode()
+        self.transport.publish(topics.services_request(self.client_id), request, qos=1)
 
     def _service_list(self, payload: bytes) -> None:
         """Take a service list: at most ``max_list`` bytes, signed by the pinned core
@@ -706,6 +731,8 @@ class Participant(Worker[Event]):
         return None
 
     def tick(self, now: float) -> None:
+        if now >= self._next_ask:
+            self._ask_services(now)
         limit = 2 * self.config.max_age + 1.0
         unreachable = self.unreachable(now)
         if unreachable is not None:

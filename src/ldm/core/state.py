@@ -59,8 +59,13 @@ class SessionState:
     old: list[Pseudonym] = field(default_factory=list)
     next_rotate: float = 0.0  # when to (re-)send the next ``rotate`` notice
     secrets: list[SessionSecret] = field(default_factory=list)
-    """Shared with the participant by recent grants, newest last (`Core._grant_secret`)."""
+    """Shared with the participant by recent grants, newest last (`Sessions._keep_secret`)."""
     last_grant: SessionNotice | None = None  # sent again, unchanged, for a duplicate request
+    granted: float = 0.0  # when the last grant that was no duplicate was made
+    rekeys: float = 1.0
+    """Key changes the session may still make early (`Sessions.pseudonym`), as of
+    ``rekeys_at``: a bucket refilled at one per ``rekey_interval``, at most 2."""
+    rekeys_at: float = 0.0
 
 
 @dataclass(slots=True)

@@ -93,10 +93,9 @@ def mosquitto_acl(core_user: str, providers: Mapping[str, str]) -> str:
     read and write every ``ldm/`` topic (and the backbone's, on that broker).
     """
     lines = [
-        "# participants (any client): their own topics and the service list",
+        "# participants (any client): their own topics, where the service list comes too",
         "pattern write ldm/p/%c/up/#",
         "pattern read ldm/p/%c/down/#",
-        "pattern read ldm/services",
         f"user {core_user}",
         "topic readwrite ldm/#",
     ]

@@ -26,6 +26,7 @@ from ldm.wire.messages import (
     CoreStatus,
     Envelope,
     ServiceList,
+    ServicesRequest,
     SessionNotice,
     SessionRequest,
     Withdrawal,
@@ -64,6 +65,7 @@ _PARAMETERS: dict[str, str] = {
 
 _LDM_MODELS: tuple[type[BaseModel], ...] = (
     ServiceList,
+    ServicesRequest,
     SessionRequest,
     SessionNotice,
     Envelope,
@@ -192,6 +194,13 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "The services a cluster offers, signed by its core; retained.",
             _ref(ServiceList),
         ),
+        "ServicesRequest": _message(
+            "ServicesRequest",
+            "Service list request",
+            "A participant asks its core for the service list on its own topics (at each "
+            "connect, then every 10 minutes); the core sends it, then each change.",
+            _ref(ServicesRequest),
+        ),
         "SessionRequest": _message(
             "SessionRequest",
             "Session request",
@@ -256,6 +265,18 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             [user, svc],
             ["ServiceList"],
             "The retained service list of a cluster.",
+        ),
+        "servicesRequest": _channel(
+            topics.services_request(c),
+            [user],
+            ["ServicesRequest"],
+            "Participant -> its core: send me the service list.",
+        ),
+        "servicesReply": _channel(
+            topics.services_reply(c),
+            [user],
+            ["ServiceList"],
+            "Core -> one participant: the service list, and each change of it.",
         ),
         "sessionRequest": _channel(
             topics.session_request(c), [user], ["SessionRequest"], "Participant -> its core."
@@ -347,6 +368,22 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
         "participantReadsServices": op(
             "participant", "receive", "services", ["ServiceList"], "Read the service list.", 1
         ),
+        "participantAsksForServices": op(
+            "participant",
+            "send",
+            "servicesRequest",
+            ["ServicesRequest"],
+            "Ask for the service list (needs no right to ldm/services).",
+            1,
+        ),
+        "participantReceivesServices": op(
+            "participant",
+            "receive",
+            "servicesReply",
+            ["ServiceList"],
+            "The service list on the participant's own topic.",
+            1,
+        ),
         "participantRequestsSession": op(
             "participant",
             "send",
@@ -419,6 +456,14 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             ["ReplyEnvelope"],
             f"Reply to a pseudonym ({_DATA}).",
             0,
+        ),
+        "coreSendsServices": op(
+            "core",
+            "send",
+            "servicesReply",
+            ["ServiceList"],
+            "Send the list to a participant that asked, and each change for 30 minutes.",
+            1,
         ),
         "corePublishesServices": op(
             "core",

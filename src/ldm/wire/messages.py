@@ -16,6 +16,7 @@ from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN, TOKEN_PATTERN
 
 __all__ = [
+    "LIST_REFRESH",
     "Announcement",
     "CoreStatus",
     "Envelope",
@@ -23,6 +24,7 @@ __all__ = [
     "ServiceDescription",
     "ServiceList",
     "ServiceSpec",
+    "ServicesRequest",
     "SessionGrant",
     "SessionNotice",
     "SessionRequest",
@@ -144,6 +146,20 @@ class ServiceList(_Wire):
 
     def signed_text(self) -> bytes:
         return canonical("ldm-list/1", self.model_dump(mode="json", exclude={"sig"}))
+
+
+LIST_REFRESH = 600.0
+"""s: a participant asks its core for the service list at least this often (and at each
+connect); the core sends changes of the list to each client that asked within three
+times this (`ServicesRequest`)."""
+
+
+class ServicesRequest(_Wire):
+    """Participant -> user core: send me the cluster's service list, now and when it
+    changes (on ``ldm/p/{client}/down/services``). Needed where the broker's ACL lets a
+    participant read only its own topics; the retained ``ldm/services`` holds the same."""
+
+    t: float
 
 
 class CoreStatus(_Wire):

@@ -2,10 +2,12 @@
 
 User-cluster topics carry the participant's MQTT client id at level 3, so a Mosquitto
 ACL can confine a participant with ``pattern write ldm/p/%c/up/#`` and
-``pattern read ldm/p/%c/down/#`` (plus ``pattern read ldm/services``).
+``pattern read ldm/p/%c/down/#``: the service list comes on its own topics too.
 Topics that leave the user cluster carry only pseudonyms.
 
     ldm/services                                   retained service list of this cluster
+    ldm/p/{client}/up/services                     participant -> core: list request
+    ldm/p/{client}/down/services                   core -> participant: the service list
     ldm/p/{client}/up/session                      participant -> core: session request
     ldm/p/{client}/up/data/{service}               participant -> core: encrypted input
     ldm/p/{client}/down/session                    core -> participant: grants and notices
@@ -78,6 +80,14 @@ def check_name(value: str, what: str) -> str:
 def participant_down(client: str) -> str:
     """Filter for everything a participant receives."""
     return f"ldm/p/{client}/down/#"
+
+
+def services_request(client: str) -> str:
+    return f"ldm/p/{client}/up/services"
+
+
+def services_reply(client: str) -> str:
+    return f"ldm/p/{client}/down/services"
 
 
 def session_request(client: str) -> str:
@@ -183,6 +193,8 @@ def bb_reply_batch_filter(core: str) -> str:
 
 Kind = Literal[
     "services",
+    "services_request",
+    "services_reply",
     "session_request",
     "participant_input",
     "participant_up",
@@ -238,11 +250,15 @@ def parse(topic: str) -> Topic:
         if way == "up":
             if n == 5 and levels[4] == "session":
                 return Topic("session_request", client=client)
+            if n == 5 and levels[4] == "services":
+                return Topic("services_request", client=client)
             if n == 6 and levels[4] == "data":
                 return Topic("participant_input", client=client, service=levels[5])
             return Topic("participant_up", client=client)
         if way == "down" and n == 5 and levels[4] == "session":
             return Topic("session_notice", client=client)
+        if way == "down" and n == 5 and levels[4] == "services":
+            return Topic("services_reply", client=client)
         if way == "down" and n == 6 and levels[4] == "data":
             return Topic("participant_reply", client=client, service=levels[5])
     elif area == "svc" and n in (4, 5):

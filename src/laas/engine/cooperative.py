@@ -68,6 +68,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
+from laas.engine.handover import AreaState, HandoverError, LaneState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import Track
@@ -145,6 +146,60 @@ class CooperativeLaneFilter(LaneFilter):
 
     def segment_groups(self) -> int:
         return len({lanes.segment.id for lanes in list(self._lanes.values())})
+
+    def export_lanes(self, user: str) -> LaneState | None:
+        kept = self._lanes.get(user)
+        if kept is None:
+            return None
+        lo, hi = kept.area.span(kept.normal)
+        return LaneState(
+            kept.segment.id, kept.normal.copy(), kept.area.u.size, lo, kept.alpha[lo:hi].copy()
+        )
+
+    def import_lanes(self, user: str, state: LaneState, segment: Segment, at: np.ndarray) -> None:
+        """The table's u-cells as given; the others (which the old area's posterior held
+        no mass at) the given cells' marginal lane probabilities."""
+        area = self._errors.at(at)
+        lanes = len(segment.lanes)
+        if state.cells != area.u.size or state.alpha.shape[1] != lanes or not len(state.alpha):
+            self._lanes.pop(user, None)  # another grid or another map: start afresh
+            return
+        given = np.maximum(state.alpha, 0.0)
+        marginal = given.sum(axis=0)
+        marginal = marginal / marginal.sum() if marginal.sum() > 0 else np.full(lanes, 1 / lanes)
+        alpha = np.tile(marginal, (area.u.size, 1))
+        alpha[state.lo : state.lo + len(given)] = given
+        self._lanes[user] = _Lanes(segment, area, state.normal.copy(), alpha)
+
+    def record_areas(self) -> None:
+        self._errors.recording = True
+        for area in self._errors.areas:
+            area.record()
+
+    def export_areas(self, box: tuple[float, float, float, float]) -> list[AreaState]:
+        x0, y0, x1, y1 = box
+        out = []
+        for area in self._errors.areas:
+            e, n = float(area.centre[0]), float(area.centre[1])
+            if x0 <= e <= x1 and y0 <= n <= y1:
+                found = area.shared()
+                if found is not None:
+                    out.append(AreaState((e, n), area.u.size, found[0], found[1]))
+        return out
+
+    def import_areas(self, source: str, states: list[AreaState]) -> int:
+        taken = 0
+        for state in states:
+            area = self._errors.at(np.array(state.centre))
+            if state.cells != area.u.size:
+                continue  # another prior: not the same grid
+            try:
+                area.take_shared(state.window, state.log)
+            except ValueError as exc:
+                raise HandoverError(f"hand-over from {source}: {exc}") from None
+            taken += 1
+        self._errors.forget_places()
+        return taken
 
     def corrections(self, positions: np.ndarray, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each area of the batch brought to the batch's time t once, then read."""

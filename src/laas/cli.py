@@ -185,6 +185,15 @@ def _cmd_regions(a: argparse.Namespace) -> int:
         f"laas regions: {len(trace.fixes)} fixes of {len(scenario.users)} road users on "
         f"{hdmap.source}, seed {a.seed}"
     )
+    if a.live:
+        from laas.run.regional import compare_live
+
+        print("live: one worker, then regional workers, on a local deployment", flush=True)
+        live = compare_live(
+            hdmap, trace, workers=a.workers, speedup=a.speedup, brokers=a.brokers, after=a.after
+        )
+        print(live.format())
+        return 0
     for handover in (False, True):
         r = compare_regions(
             hdmap, trace, workers=a.workers, handover=handover, overlap=a.overlap, after=a.after
@@ -807,6 +816,19 @@ def _add_offline(sub: Any) -> None:
     )
     p.add_argument(
         "--after", type=int, default=10, help="fixes counted after each hand-over (default 10)"
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="instead: the users as live participants on a local deployment, through one "
+        "worker and then through regional workers (--overlap: the default 150 m)",
+    )
+    p.add_argument("--speedup", type=float, default=20.0, help="with --live: faster by")
+    p.add_argument(
+        "--brokers",
+        choices=["auto", "embedded", "mosquitto"],
+        default="auto",
+        help="with --live: broker kind (auto: Mosquitto if installed)",
     )
     p.set_defaults(func=_cmd_regions)
 

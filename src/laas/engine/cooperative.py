@@ -187,9 +187,17 @@ class CooperativeLaneFilter(LaneFilter):
                     out.append(AreaState((e, n), area.u.size, found[0], found[1]))
         return out
 
-    def import_areas(self, source: str, states: list[AreaState]) -> int:
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
         taken = 0
         for state in states:
+            e, n = state.centre
+            if box is not None and not (box[0] <= e <= box[2] and box[1] <= n <= box[3]):
+                continue
             area = self._errors.at(np.array(state.centre))
             if state.cells != area.u.size:
                 continue  # another prior: not the same grid

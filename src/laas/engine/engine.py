@@ -292,10 +292,16 @@ class Engine:
         map's frame; default mode, once `record_areas` was called)."""
         return self._lanes.export_areas(box)
 
-    def import_areas(self, source: str, states: list[AreaState]) -> int:
-        """A neighbour's `export_areas`, folded into the areas here at their centres
-        (`CommonError.take_shared`); how many were taken."""
-        return self._lanes.import_areas(source, states)
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
+        """A neighbour's `export_areas`, those whose centre lies in `box` (None: all),
+        folded into the areas here at their centres (`CommonError.take_shared`); how
+        many were taken."""
+        return self._lanes.import_areas(source, states, box)
 
     # -- answers ---------------------------------------------------------------------------
 

@@ -85,8 +85,14 @@ class LaneFilter(ABC):
         (x0, y0, x1, y1)."""
         return []
 
-    def import_areas(self, source: str, states: list[AreaState]) -> int:
-        """Fold in a neighbour's own evidence of its areas (from `source`); how many."""
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
+        """Fold in a neighbour's own evidence of its areas (from `source`) whose centre
+        lies in `box` (None: all); how many."""
         return 0
 
 

@@ -29,7 +29,7 @@ from laas.sim.scenario import Trace
 from laas.sim.score import RunResult, answer_trace, judge, score
 from laas.worker.regions import Region, split
 
-__all__ = ["RegionalComparison", "compare_regions", "regional_answers"]
+__all__ = ["RegionalComparison", "compare_answers", "compare_regions", "regional_answers"]
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,8 @@ class RegionalComparison:
 def _route(hdmap: HdMap, trace: Trace, regions: Sequence[Region]) -> list[int]:
     """The region each fix goes to (RoutedSession's rule, in the map's frame)."""
     xy = hdmap.projection.to_utm_array(
-        [f.measurement.longitude for f in trace.fixes], [f.measurement.latitude for f in trace.fixes]
+        [f.measurement.longitude for f in trace.fixes],
+        [f.measurement.latitude for f in trace.fixes],
     )
     current: dict[str, int] = {}
     out = []
@@ -132,16 +133,19 @@ def regional_answers(
 
 
 def _share(engines: Sequence[Engine], regions: Sequence[Region], margin: float) -> None:
-    """Each worker's own area estimates to its neighbours (all exported, then taken)."""
-    moves = []
-    for k, region in enumerate(regions):
-        for j in (k - 1, k + 1):
-            if 0 <= j < len(regions):
-                x0, y0, x1, y1 = regions[j].box
-                box = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
-                moves.append((j, region.name, engines[k].export_areas(box)))
-    for j, source, states in moves:
-        engines[j].import_areas(source, states)
+    """Each worker's own area evidence to the others, as a family note goes to every
+    sibling (`laas.worker.service`): each exports the areas of its coverage once, and
+    each other takes those within its own (both grown by half an area)."""
+    boxes = [_grown(r.box, margin) for r in regions]
+    notes = [(r.name, engines[k].export_areas(boxes[k])) for k, r in enumerate(regions)]
+    for k, engine in enumerate(engines):
+        for j, (source, states) in enumerate(notes):
+            if j != k and states:
+                engine.import_areas(source, states, boxes[k])
+
+
+def _grown(box: tuple[float, float, float, float], by: float) -> tuple[float, float, float, float]:
+    return (box[0] - by, box[1] - by, box[2] + by, box[3] + by)
 
 
 def compare_regions(
@@ -157,15 +161,34 @@ def compare_regions(
     """One worker against `workers` regional ones on `trace` (module docstring)."""
     regions = split(hdmap, workers, overlap)
     one = answer_trace(hdmap, trace, config)
-    many, handed = regional_answers(hdmap, trace, config, regions, handover=handover)
-    following: list[int] = []
+    many, _ = regional_answers(hdmap, trace, config, regions, handover=handover)
+    return compare_answers(hdmap, trace, regions, one, many, handover=handover, after=after)
+
+
+def compare_answers(
+    hdmap: HdMap,
+    trace: Trace,
+    regions: Sequence[Region],
+    one: Sequence[CorrectedPosition | None],
+    many: Sequence[CorrectedPosition | None],
+    *,
+    handover: bool,
+    after: int = 10,
+) -> RegionalComparison:
+    """Score one worker's answers `one` against the regional workers' `many` (offline
+    or live, `laas.run.regional`); the hand-overs are where a participant routing the
+    fixes changes workers (`RoutedSession`'s rule)."""
+    route = _route(hdmap, trace, regions)
     by_user: dict[str, list[int]] = {}
     for i, fix in enumerate(trace.fixes):
         by_user.setdefault(fix.user, []).append(i)
-    for i in handed:
-        mine = by_user[trace.fixes[i].user]
-        k = mine.index(i)
-        following += mine[k : k + after]
+    handed = 0
+    following: list[int] = []
+    for mine in by_user.values():
+        for k in range(1, len(mine)):
+            if route[mine[k]] != route[mine[k - 1]]:
+                handed += 1
+                following += mine[k : k + after]
 
     def accuracy(answers: Sequence[CorrectedPosition | None]) -> float:
         right = [
@@ -176,11 +199,11 @@ def compare_regions(
         return sum(right) / len(right) if right else float("nan")
 
     return RegionalComparison(
-        workers,
+        len(regions),
         handover,
         score(hdmap, trace, one),
         score(hdmap, trace, many),
-        len(handed),
+        handed,
         after,
         accuracy(one),
         accuracy(many),

@@ -85,6 +85,8 @@ _CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new
 # 1-9 s), jumps of 1-6 m; in cities it is the most common receiver fault.
 _MULTIPATH_SHARE = 0.05
 _MULTIPATH_SIGMA = 3.0  # m, across the road
+_HANDED_MASS = 1e-9  # a hand-over carries the lane table where p(u) > this * its peak
+_HANDED_MARGIN = 10  # and this many u-cells (1 m) on either side
 
 
 @dataclass
@@ -151,7 +153,13 @@ class CooperativeLaneFilter(LaneFilter):
         kept = self._lanes.get(user)
         if kept is None:
             return None
-        lo, hi = kept.area.span(kept.normal)
+        # only the u-cells where the posterior of u = n . b holds mass, and a few more
+        # (the next worker's posterior, which pools the same evidence, holds about the
+        # same): a few dozen rows, not the hundreds the window's margin keeps fresh
+        mass = kept.area.u_moments(kept.normal)[:, 0]
+        held = np.flatnonzero(mass > _HANDED_MASS * mass.max())
+        lo = max(int(held[0]) - _HANDED_MARGIN, 0)
+        hi = min(int(held[-1]) + 1 + _HANDED_MARGIN, kept.area.u.size)
         return LaneState(
             kept.segment.id, kept.normal.copy(), kept.area.u.size, lo, kept.alpha[lo:hi].copy()
         )

@@ -17,14 +17,16 @@ next worker goes on as one worker would have:
                 its own area at that place (`CommonError.take_shared`), so both sides of a
                 border pool the evidence of every user near it, as one worker does.
 
-`to_bytes` / `from_bytes` give a compact form (JSON, arrays as base64 float32) and refuse
-a malformed one with `HandoverError`.
+`user_to_bytes` / `user_from_bytes` (and the same for areas) give a compact form (JSON,
+arrays as base64 float32, zlib-compressed) and refuse a malformed one with
+`HandoverError`.
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +46,7 @@ __all__ = [
 ]
 
 _VERSION = 1
+_MAX_BYTES = 4 << 20  # a hand-over unpacks to this at most
 
 
 class HandoverError(LaasError):
@@ -119,7 +122,7 @@ def user_to_bytes(state: UserState) -> bytes:
             "lo": ln.lo,
             "alpha": _array(ln.alpha),
         }
-    return json.dumps(body, separators=(",", ":")).encode()
+    return _pack(body)
 
 
 def user_from_bytes(data: bytes) -> UserState:
@@ -154,7 +157,7 @@ def user_from_bytes(data: bytes) -> UserState:
 
 def areas_to_bytes(states: list[AreaState]) -> bytes:
     """The compact form of a worker's shared areas."""
-    return json.dumps(
+    return _pack(
         {
             "v": _VERSION,
             "areas": [
@@ -166,9 +169,8 @@ def areas_to_bytes(states: list[AreaState]) -> bytes:
                 }
                 for a in states
             ],
-        },
-        separators=(",", ":"),
-    ).encode()
+        }
+    )
 
 
 def areas_from_bytes(data: bytes) -> list[AreaState]:
@@ -194,11 +196,19 @@ def areas_from_bytes(data: bytes) -> list[AreaState]:
     return out
 
 
+def _pack(body: dict[str, Any]) -> bytes:
+    return zlib.compress(json.dumps(body, separators=(",", ":")).encode())
+
+
 def _body(data: bytes) -> dict[str, Any]:
     try:
-        body = json.loads(data)
-    except ValueError:
-        raise HandoverError("hand-over: not JSON") from None
+        unpacker = zlib.decompressobj()
+        text = unpacker.decompress(data, _MAX_BYTES)
+        if unpacker.unconsumed_tail:
+            raise HandoverError(f"hand-over: unpacks to more than {_MAX_BYTES} bytes")
+        body = json.loads(text)
+    except (zlib.error, ValueError):
+        raise HandoverError("hand-over: not compressed JSON") from None
     if not isinstance(body, dict) or body.get("v") != _VERSION:
         raise HandoverError(f"hand-over: give a version {_VERSION} object")
     return body

@@ -75,10 +75,14 @@ class LaneFilter(ABC):
         return None
 
     def import_lanes(self, user: str, state: LaneState, segment: Segment, at: np.ndarray) -> None:
-        """Take `user`'s lane table from a hand-over, in `segment`, the user at `at`."""
+        """Take `user`'s lane table from a hand-over, in `segment`, the user at `at`
+        (by default none is kept: the user starts afresh)."""
+        return None
 
     def record_areas(self) -> None:
-        """Keep each area's own evidence from now on, for `export_areas`."""
+        """Keep each area's own evidence from now on, for `export_areas` (by default
+        there are no areas)."""
+        return None
 
     def export_areas(self, box: tuple[float, float, float, float]) -> list[AreaState]:
         """The own evidence since the last export of the areas whose centre lies in

@@ -29,7 +29,13 @@ from laas.sim.scenario import Trace
 from laas.sim.score import RunResult, answer_trace, judge, score
 from laas.worker.regions import Region, split
 
-__all__ = ["RegionalComparison", "compare_answers", "compare_regions", "regional_answers"]
+__all__ = [
+    "RegionalComparison",
+    "compare_answers",
+    "compare_regions",
+    "regional_answers",
+    "route_fixes",
+]
 
 
 @dataclass(frozen=True)
@@ -62,8 +68,9 @@ class RegionalComparison:
         )
 
 
-def _route(hdmap: HdMap, trace: Trace, regions: Sequence[Region]) -> list[int]:
-    """The region each fix goes to (RoutedSession's rule, in the map's frame)."""
+def route_fixes(hdmap: HdMap, trace: Trace, regions: Sequence[Region]) -> list[int]:
+    """The region (its index) each fix of `trace` goes to: RoutedSession's rule, in the
+    map's frame."""
     xy = hdmap.projection.to_utm_array(
         [f.measurement.longitude for f in trace.fixes],
         [f.measurement.latitude for f in trace.fixes],
@@ -95,7 +102,7 @@ def regional_answers(
 ) -> tuple[list[CorrectedPosition | None], list[int]]:
     """Every fix answered by the worker of its region (module docstring): the answers,
     in order, and the indices of the fixes that came to a worker by a hand-over."""
-    route = _route(hdmap, trace, regions)
+    route = route_fixes(hdmap, trace, regions)
     engines = [Engine(hdmap, config) for _ in regions]
     if handover:
         for engine in engines:
@@ -178,7 +185,7 @@ def compare_answers(
     """Score one worker's answers `one` against the regional workers' `many` (offline
     or live, `laas.run.regional`); the hand-overs are where a participant routing the
     fixes changes workers (`RoutedSession`'s rule)."""
-    route = _route(hdmap, trace, regions)
+    route = route_fixes(hdmap, trace, regions)
     by_user: dict[str, list[int]] = {}
     for i, fix in enumerate(trace.fixes):
         by_user.setdefault(fix.user, []).append(i)

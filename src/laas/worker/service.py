@@ -68,7 +68,7 @@ from laas.engine.handover import (
     user_to_bytes,
 )
 from laas.map.hdmap import HdMap
-from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, problems
+from laas.models import HANDOVER_MAX, CorrectedPosition, ErrorReply, GpsMeasurement, problems
 from laas.worker.regions import Region
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 from ldm.errors import CryptoError
@@ -165,6 +165,7 @@ class WorkerStats:
     handed_out: int = 0  # answers that carried the user's state for the next worker
     handed_in: int = 0  # fixes whose hand-over was taken
     handover_refused: int = 0  # hand-overs that could not be opened or read
+    handover_skipped: int = 0  # states too large to hand over (models.HANDOVER_MAX)
 
     @property
     def refusals(self) -> dict[str, int]:
@@ -336,6 +337,9 @@ class LaasService:
             state = self.engine.export_user(pseudonym)
             if state is not None:
                 token = self._family.seal(user_to_bytes(state), _HANDOVER_AAD)
+                if len(token) > HANDOVER_MAX:  # a wide lane table: the user starts afresh
+                    self.stats.handover_skipped += 1
+                    continue
                 replies[i] = {**replies[i], "handover": token}
                 self.stats.handed_out += 1
 

@@ -36,6 +36,8 @@ from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
 __all__ = ["Engine", "EngineStats"]
 
+_HANDOVER_REACH = 10_000.0  # m: a handed-over track this far off the map is not ours
+
 
 @dataclass
 class EngineStats:
@@ -261,14 +263,15 @@ class Engine:
     def import_user(self, user: str, state: UserState) -> bool:
         """Go on with `user` from a hand-over: its track and lane table as the old worker
         left them. Not taken (False) if `user` already has a track as new, or if the
-        state is from another frame (its position farther than `max_map_distance` plus
-        the service area from the map)."""
+        state's position lies more than `_HANDOVER_REACH` outside the map's bounds (a
+        state from another map). A state older than `track_timeout` is taken, and its
+        track restarts at the next fix, as any track's would."""
         t, e, n, speed, heading, accuracy = state.fix
         known = self._tracks.get(user)
         if known is not None and known.t >= t:
             return False
         x0, y0, x1, y1 = self.map.bounds
-        reach = 10_000.0
+        reach = _HANDOVER_REACH
         if not (x0 - reach <= e <= x1 + reach and y0 - reach <= n <= y1 + reach):
             return False
         fix = Fix(t, e, n, speed, heading - self._convergence, accuracy)

@@ -1,6 +1,6 @@
 """What one worker hands another: a user's state at a region's border, and the common
 error of the areas two regions share. Pure data (no MQTT, no keys): the worker seals
-and moves it (`laas.worker.handover`).
+and moves it (`laas.worker.service`).
 
 A road user who crosses into the next worker's region takes its history along, so the
 next worker goes on as one worker would have:

@@ -6,7 +6,7 @@ worker's coverage (`laas.worker.regions`, the strip grown by the overlap) and el
 to the worker whose coverage holds it deepest. Every worker is an `Engine` fed in the
 batches the live worker takes (`laas.engine.batches`). With ``handover`` on, a user's
 state moves with it (`Engine.export_user` -> `Engine.import_user`, what the live workers
-seal and pass through the participant: `laas.worker.handover`), and every
+seal and pass through the participant: `laas.worker.service`), and every
 ``share_every`` seconds of the trace each worker gives its neighbours its own estimate of
 the areas they may use (`Engine.export_areas` -> `Engine.import_areas`); off, each worker
 starts every user afresh and estimates its areas alone.

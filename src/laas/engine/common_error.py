@@ -64,6 +64,14 @@ only grows; T is the user's evidence as it went into log p, so where the window 
 held a cell at the user's fixes T = 0 (log p there holds none of it to forgive), and S
 stays the sum over the records cell by cell.
 
+Regional workers (`laas.engine.handover`). Each fix goes to one worker, so two workers
+that serve one area see disjoint users, and the posterior one worker for all would hold
+is the prior times both workers' evidence. An area that `record`s keeps its own users'
+evidence E = sum_k log c_k(n_k . b) since it last gave it away (`shared`); the other
+worker adds it to its own log p (`take_shared`), and what it takes it never shares on,
+so no evidence echoes back and none counts twice (tests/test_handover.py holds two
+sharing areas to one fed everything).
+
 With two users and nobody else, either may be the liar: the posterior then leans to one
 of them where the Gaussian pool split the difference. The bound is per participant: a
 liar with several identities (or one that is silent for `_EVIDENCE_KEEP` s and returns)

@@ -77,3 +77,37 @@ def test_a_user_handed_to_another_engine_is_answered_as_by_one(hamburg_map: HdMa
         user_from_bytes(zlib.compress(b'{"v": 1, "x": {"shape": [4], "data": "!!"}}'))
     with pytest.raises(HandoverError, match="compressed JSON"):
         user_from_bytes(b"{}")
+
+
+def test_a_worker_refuses_a_hand_over_it_cannot_open_and_answers_the_fix(
+    hamburg_map: HdMap,
+) -> None:
+    """A hand-over sealed under another identity, or no sealed text at all, is counted
+    refused; the fix itself is answered, as a new track's."""
+    import time
+
+    from laas.worker.regions import split
+    from laas.worker.service import LaasService
+    from ldm import Request
+    from ldm.security.crypto import family_cipher
+    from ldm.security.identity import SigningKey
+
+    region = split(hamburg_map, 2)[1]
+    service = LaasService(
+        hamburg_map, CONFIG, region=region, family=family_cipher(SigningKey.generate(), "laas")
+    )
+    other = family_cipher(SigningKey.generate(), "laas")
+    scenario = hamburg_scenario()
+    fix = simulate(hamburg_map, scenario, scenario.errors, seed=4).fixes[0].measurement
+    now = int(time.time() * 1000)
+    tokens = [other.seal(b"x", "laas-handover/1"), "not sealed"]
+    replies = service.handle_many(
+        [
+            Request(
+                f"p{k}", f"c{k}", {**fix.model_dump(), "timestamp": now, "handover": t}, 0, True
+            )
+            for k, t in enumerate(tokens)
+        ]
+    )
+    assert all("segment" in r for r in replies), replies
+    assert service.stats.handover_refused == 2 and service.stats.handed_in == 0

@@ -316,7 +316,14 @@ class LaasService:
                     self.stats.handed_in += 1
             except (CryptoError, HandoverError) as exc:
                 self.stats.handover_refused += 1
-                log.warning("a hand-over was refused, the fix taken as a new track's: %s", exc)
+                # the first said loudly (workers under different identity keys refuse
+                # every one), the rest counted (laas_handovers_total{way="refused"})
+                log.log(
+                    logging.WARNING if self.stats.handover_refused == 1 else logging.DEBUG,
+                    "a hand-over was refused, the fix taken as a new track's (%s); do all "
+                    "regional workers serve under one identity key (--identity)?",
+                    exc,
+                )
 
     def _hand_out(
         self,

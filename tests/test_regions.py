@@ -267,7 +267,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
     border worker 1's answers carry its state sealed for the workers; the participant's
     RoutedSession hands the latest to worker 2 with its first fix there, and worker 2's
     first answer is what one worker gives (offline: `Engine`): the same lane, accuracy
-    and probability (a new track's accuracy is more than twice as wide). No broker
+    and probability (without the hand-over its lane probability is 0.12 lower). No broker
     message holds the hand-over in the clear or even its sealed text (the sessions
     encrypt it again), and a key other than the workers' cannot open it."""
     import time

@@ -499,10 +499,13 @@ class CommonError:
         shared on (it is not our own).
 
         Where its window does not reach, the neighbour had ruled b out before (by the
-        evidence it shared then) and worked out nothing new; those cells take its least
-        likely value there, so that no cell gains by having been left out:
+        evidence it shared then) and worked out nothing new; those cells count as ruled
+        out by it, _DROP below its best, as do the cells it rules out by more, so that no
+        cell gains by having been left out, and none that our own evidence ruled out (held
+        at the floor, 2 _DROP below our best) comes back by the neighbour's word alone:
 
-            log p(b) += E(b) - min E   on its window,  0 elsewhere   (then normalised)
+            log p(b) += max(E(b) - max E, -_DROP) + _DROP   on its window,
+                        0                                   elsewhere   (then normalised)
 
         It comes a share interval late, so the random walk has blurred it a little less
         than ours: a second or so, far below a cell."""
@@ -512,7 +515,7 @@ class CommonError:
             raise ValueError(f"shared evidence of window {win} does not fit a grid of {n}")
         if not np.isfinite(evidence).all():
             raise ValueError("shared evidence holds NaN or infinite values")
-        self._log[i0:i1, j0:j1] += evidence - evidence.min()
+        self._log[i0:i1, j0:j1] += np.maximum(evidence - evidence.max(), -_DROP) + _DROP
         w0, w1, v0, v1 = self._win
         self._win = (min(w0, i0), max(w1, i1), min(v0, j0), max(v1, j1))
         i0, i1, j0, j1 = self._win

@@ -118,3 +118,16 @@ def test_bench_filter_reports_both_modes(capsys: pytest.CaptureFixture[str]) -> 
     assert all(r["default_ms"] > 0 for r in rows)
     assert all(r["paper_ms"] > 0 for r in rows[:-1])
     assert rows[-1]["paper_ms"] is None  # 4^10 hypotheses: past the enumeration limit
+
+
+def test_regions_compares_one_worker_with_two(capsys: pytest.CaptureFixture[str]) -> None:
+    """`laas regions` prints both comparisons: each worker alone, and with hand-over."""
+    from laas.map.bundled import bundled_map
+
+    argv = ["regions", "--map", str(bundled_map("messe-hamburg")), "--users", "6"]
+    assert main([*argv, "--duration", "40"]) == 0
+    out = capsys.readouterr().out
+    assert "without hand-over" in out and "with hand-over" in out
+    assert out.count("lane accuracy in the 10 fixes after each of") == 2
+    assert main(["regions", "--workers", "1"]) == 2
+    assert "--workers must be >= 2" in capsys.readouterr().err

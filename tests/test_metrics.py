@@ -47,6 +47,7 @@ def test_every_counter_of_the_components_is_exposed_once() -> None:
     provider = set(PROVIDER_INPUTS) | set(PROVIDER_COUNTERS)
     assert {f.name for f in dataclasses.fields(ProviderStats)} == provider
     worker = set(FIX_OUTCOMES) | {"expired", "evicted", "engine_seconds"}
+    worker |= {"handed_out", "handed_in", "handover_refused", "handover_skipped"}
     assert {f.name for f in dataclasses.fields(WorkerStats)} == worker
     assert set(ENGINE_COUNTERS) <= {f.name for f in dataclasses.fields(EngineStats)}
 

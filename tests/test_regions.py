@@ -260,3 +260,84 @@ def test_a_missing_regional_worker_fails_only_the_fixes_of_its_region(
     assert any("no provider of 'laas' covers" in e for e in live.errors)
     assert code == 0
     assert 0 < len(out.read_text().splitlines()) < len(trace.fixes)
+
+
+def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
+    """A car drives from region 1 into region 2 of two live regional workers. Past the
+    border worker 1's answers carry its state sealed for the workers; the participant's
+    RoutedSession hands the latest to worker 2 with its first fix there, and worker 2's
+    first answer is what one worker gives (offline: `Engine`): the same lane, accuracy
+    and probability (without the hand-over its lane probability is 0.12 lower). No broker
+    message holds the hand-over in the clear or even its sealed text (the sessions
+    encrypt it again), and a key other than the workers' cannot open it."""
+    import time
+
+    from laas.engine import Engine
+    from laas.sim.regional import route_fixes
+    from ldm import CryptoError, Participant, RoutedSession
+    from ldm.security.crypto import family_cipher
+    from ldm.security.identity import SigningKey
+    from ldm.transport.mqtt import Event, Message, Transport
+
+    scenario = hamburg_scenario()
+    trace = simulate(hamburg_map, scenario, scenario.errors, seed=4)
+    route = route_fixes(hamburg_map, trace, split(hamburg_map, 2))
+    mine = [i for i, f in enumerate(trace.fixes) if f.user == "car"]
+    cross = next(k for k in range(1, len(mine)) if route[mine[k]] != route[mine[k - 1]])
+    car = [trace.fixes[i].measurement for i in mine[: cross + 1]]  # its first fix in 2
+    one = Engine(hamburg_map, CONFIG)
+    reference = [one.process("car", m) for m in car][-1]
+    assert reference is not None
+    seen: list[bytes] = []
+
+    def sink(event: Event) -> None:
+        if isinstance(event, Message):
+            seen.append(event.payload)
+
+    with LocalDeployment(hamburg_map, CONFIG, brokers="embedded", regions=2) as deployment:
+        spies = []
+        for name, broker in deployment.brokers.items():
+            spy = Transport(BrokerSettings(url=broker.url), client_id=f"spy-{name}", sink=sink)
+            spy.subscribe("#", 0)
+            spy.start(timeout=5)
+            spies.append(spy)
+        participant = Participant.create(deployment.user_url, **deployment.trust).start()
+        try:
+            deadline = time.monotonic() + 10
+            while len({s.name for s in participant.services()}) < 2:
+                assert time.monotonic() < deadline, "the user cluster never listed both workers"
+                time.sleep(0.05)
+            routed = RoutedSession(participant, "laas")
+            shift = int(time.time() * 1000) - car[0].timestamp
+            replies = []
+            for m in car:
+                fix = m.model_copy(update={"timestamp": m.timestamp + shift})
+                replies.append(
+                    routed.request(fix.model_dump(exclude_none=True), (m.longitude, m.latitude), 5)
+                )
+            time.sleep(0.3)  # the spies' last messages
+        finally:
+            participant.stop()
+            for spy in spies:
+                spy.stop()
+        stats = [service.stats for _, service in deployment.workers]
+    assert routed.handovers == 1 and routed.current == "laas-2of2"
+    first = replies[-1]  # worker 2's first answer
+    assert "segment" in first, first
+    assert (first["segment"], first["lane"]) == (reference.segment, reference.lane)
+    assert first["accuracy"] == pytest.approx(reference.accuracy, rel=0.15)
+    assert first["probability"] == pytest.approx(reference.probability, abs=0.05)
+    assert stats[0].handed_out > 0 and stats[1].handed_in == 1, stats
+    assert stats[1].handover_refused == 0
+    tokens = [r["handover"] for r in replies if "handover" in r]
+    assert tokens
+    for payload in seen:
+        assert b'"alpha"' not in payload and b'"lanes"' not in payload
+        assert not any(t[:64].encode() in payload for t in tokens)
+    with pytest.raises(CryptoError):
+        family_cipher(SigningKey.generate(), "laas").open(tokens[-1], "laas-handover/1")
+    print(
+        f"\nhand-over: worker 2's first answer lane {first['lane']}, accuracy "
+        f"{first['accuracy']:.2f} m (one worker {reference.accuracy:.2f} m), "
+        f"{len(tokens)} sealed hand-overs of {len(tokens[-1])} characters"
+    )

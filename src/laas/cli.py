@@ -173,6 +173,35 @@ def _plots(
     return paths
 
 
+def _cmd_regions(a: argparse.Namespace) -> int:
+    from laas.sim.regional import compare_regions
+    from laas.sim.scenario import simulate_with
+
+    if a.workers < 2 or a.after < 1:
+        raise ConfigError("--workers must be >= 2 and --after >= 1")
+    scenario, hdmap = _scenario(a)
+    trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
+    print(
+        f"laas regions: {len(trace.fixes)} fixes of {len(scenario.users)} road users on "
+        f"{hdmap.source}, seed {a.seed}"
+    )
+    if a.live:
+        from laas.run.regional import compare_live
+
+        print("live: one worker, then regional workers, on a local deployment", flush=True)
+        live = compare_live(
+            hdmap, trace, workers=a.workers, speedup=a.speedup, brokers=a.brokers, after=a.after
+        )
+        print(live.format())
+        return 0
+    for handover in (False, True):
+        r = compare_regions(
+            hdmap, trace, workers=a.workers, handover=handover, overlap=a.overlap, after=a.after
+        )
+        print(r.format())
+    return 0
+
+
 def _cmd_privacy(a: argparse.Namespace) -> int:
     import time
 
@@ -790,6 +819,35 @@ def _add_offline(sub: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_privacy)
+
+    p = sub.add_parser(
+        "regions",
+        help="one worker against regional workers on the same road users (offline): lane "
+        "accuracy, mean error, lane accuracy after each hand-over; each worker alone and "
+        "with hand-over",
+    )
+    _scenario_args(p)
+    p.add_argument("--workers", type=int, default=2, help="regional workers (default 2)")
+    p.add_argument(
+        "--overlap", type=float, default=150.0, help="metres each region reaches into the next"
+    )
+    p.add_argument(
+        "--after", type=int, default=10, help="fixes counted after each hand-over (default 10)"
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="instead: the users as live participants on a local deployment, through one "
+        "worker and then through regional workers (--overlap: the default 150 m)",
+    )
+    p.add_argument("--speedup", type=float, default=20.0, help="with --live: faster by")
+    p.add_argument(
+        "--brokers",
+        choices=["auto", "embedded", "mosquitto"],
+        default="auto",
+        help="with --live: broker kind (auto: Mosquitto if installed)",
+    )
+    p.set_defaults(func=_cmd_regions)
 
     p = sub.add_parser(
         "bench-filter", help="lane filter time per update against users in a segment"

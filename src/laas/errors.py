@@ -3,7 +3,8 @@
 LaasError
 ├── MapError          a broken HD map (names the feature)
 ├── TraceError        a bad line in a recorded trace (names the line)
-└── ConfigError       an invalid engine or scenario configuration
+├── ConfigError       an invalid engine or scenario configuration
+└── HandoverError     a hand-over between workers that cannot be read (laas.engine.handover)
 """
 
 from __future__ import annotations

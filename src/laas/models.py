@@ -26,6 +26,9 @@ __all__ = [
 
 LaneType = Literal["driving", "parking", "bicycle", "sidewalk"]
 
+HANDOVER_MAX = 32_000
+"""Characters of a hand-over token at most (a user's track and lane table, sealed)."""
+
 _STRICT = ConfigDict(strict=True, frozen=True, extra="forbid", allow_inf_nan=False)
 
 # 0 .. 9999-12-31 in milliseconds since the Unix epoch.
@@ -61,6 +64,14 @@ class GpsMeasurement(BaseModel):
             "it is accuracy / sqrt 2), if it gives one"
         ),
     )
+    handover: Annotated[str, Field(max_length=HANDOVER_MAX)] | None = Field(
+        default=None,
+        exclude=True,  # never dumped: the worker and RoutedSession move it themselves
+        description=(
+            "the first fix to a regional worker: the last `handover` of the worker before "
+            "(opaque, sealed for the workers; ldm.RoutedSession adds it)"
+        ),
+    )
 
 
 class CorrectedPosition(BaseModel):
@@ -94,6 +105,14 @@ class CorrectedPosition(BaseModel):
         description="cross-road 1-sigma, m, the chance of every other lane included"
     )
     accuracy_along: Annotated[float, Field(ge=0.0)] = Field(description="along-road 1-sigma, m")
+    handover: Annotated[str, Field(max_length=HANDOVER_MAX)] | None = Field(
+        default=None,
+        exclude=True,  # never dumped: the worker and RoutedSession move it themselves
+        description=(
+            "near a region's border: this user's state for the next regional worker "
+            "(opaque, sealed for the workers; ldm.RoutedSession passes it on)"
+        ),
+    )
 
 
 ErrorKind = Literal["invalid", "clock", "outside", "stale", "internal"]

@@ -7,6 +7,7 @@ common_error   default mode: the shared GNSS error per area, a grid posterior
 assignment     default mode: the exact joint lane search in O(N^2 L^3)
 lanefilter     the two modes behind one lane-filter interface
 engine         map -> tracks -> segments -> lane filter -> corrected positions
+handover       what one regional worker hands the next: a user's state, area evidence
 """
 
 from laas.engine.engine import Engine, EngineStats

@@ -64,6 +64,14 @@ only grows; T is the user's evidence as it went into log p, so where the window 
 held a cell at the user's fixes T = 0 (log p there holds none of it to forgive), and S
 stays the sum over the records cell by cell.
 
+Regional workers (`laas.engine.handover`). Each fix goes to one worker, so two workers
+that serve one area see disjoint users, and the posterior one worker for all would hold
+is the prior times both workers' evidence. An area that `record`s keeps its own users'
+evidence E = sum_k log c_k(n_k . b) since it last gave it away (`shared`); the other
+worker adds it to its own log p (`take_shared`), and what it takes it never shares on,
+so no evidence echoes back and none counts twice (tests/test_handover.py holds two
+sharing areas to one fed everything).
+
 With two users and nobody else, either may be the liar: the posterior then leans to one
 of them where the Gaussian pool split the difference. The bound is per participant: a
 liar with several identities (or one that is silent for `_EVIDENCE_KEEP` s and returns)
@@ -150,6 +158,9 @@ class CommonError:
         self._l = np.zeros_like(self._log) if cap is not None else self._log  # log(1 + S)
         self._robust_updates = 0
         self._quorum = False  # the records are counted in S (two users or more)
+        # the own users' evidence since the last `shared`, kept once `record` is called
+        self._own: np.ndarray | None = None
+        self._own_any = False
         self._moments()
 
     def _moments(self) -> None:
@@ -275,11 +286,13 @@ class CommonError:
         sub = self._log[i0:i1, j0:j1]
         for normal, log_c, user, lo in evidence:
             cells = self._cells(normal) - lo if lo else self._cells(normal)
+            term = log_c[cells]
+            self._recorded(term)
             if self.cap is not None and user is not None:
-                self._robust(user, log_c[cells])
+                self._robust(user, term)
                 sub = self._log[i0:i1, j0:j1]
             else:
-                sub += log_c[cells]
+                sub += term
         self._settle(sub, len(evidence))
 
     def update_stacked(
@@ -302,7 +315,9 @@ class CommonError:
             else:
                 found[1][:] += log_c[k]
         for k, summed in groups.values():
-            sub += summed[self._cells(normals[k]) - lo[k]]
+            term = summed[self._cells(normals[k]) - lo[k]]
+            self._recorded(term)
+            sub += term
         self._settle(sub, len(lo))
 
     def _settle(self, sub: np.ndarray, count: int) -> None:
@@ -464,6 +479,61 @@ class CommonError:
         self._ls[i0:i1, j0:j1] = total
         self._l[i0:i1, j0:j1] = fresh
 
+    def shared(self) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+        """The evidence this area's own users gave since the last call, for the
+        neighbouring workers that serve its place (`take_shared`): on the grid window
+        that holds mass now, sum_k log c_k(n_k . b) less its maximum; None if there was
+        none (or the area keeps no record, `record`)."""
+        if self._own is None or not self._own_any:
+            return None
+        i0, i1, j0, j1 = self._win
+        out = self._own[i0:i1, j0:j1] - self._own[i0:i1, j0:j1].max()
+        self._own.fill(0.0)
+        self._own_any = False
+        return self._win, out.astype(np.float32)
+
+    def take_shared(self, win: tuple[int, int, int, int], evidence: np.ndarray) -> None:
+        """A neighbour's `shared` evidence, folded in as if its users' fixes had come
+        here: log p(b) += sum_k log c_k(n_k . b) on its window. Its users are not ours
+        (each fix goes to one worker), so nothing counts twice, and what we take is not
+        shared on (it is not our own).
+
+        Where its window does not reach, the neighbour had ruled b out before (by the
+        evidence it shared then) and worked out nothing new; those cells count as ruled
+        out by it, _DROP below its best, as do the cells it rules out by more, so that no
+        cell gains by having been left out, and none that our own evidence ruled out (held
+        at the floor, 2 _DROP below our best) comes back by the neighbour's word alone:
+
+            log p(b) += max(E(b) - max E, -_DROP) + _DROP   on its window,
+                        0                                   elsewhere   (then normalised)
+
+        It comes a share interval late, so the random walk has blurred it a little less
+        than ours: a second or so, far below a cell."""
+        n = self._axis.size
+        i0, i1, j0, j1 = win
+        if not (0 <= i0 < i1 <= n and 0 <= j0 < j1 <= n) or evidence.shape != (i1 - i0, j1 - j0):
+            raise ValueError(f"shared evidence of window {win} does not fit a grid of {n}")
+        if not np.isfinite(evidence).all():
+            raise ValueError("shared evidence holds NaN or infinite values")
+        self._log[i0:i1, j0:j1] += np.maximum(evidence - evidence.max(), -_DROP) + _DROP
+        w0, w1, v0, v1 = self._win
+        self._win = (min(w0, i0), max(w1, i1), min(v0, j0), max(v1, j1))
+        i0, i1, j0, j1 = self._win
+        self._settle(self._log[i0:i1, j0:j1], 0)
+
+    def record(self) -> None:
+        """Keep this area's own evidence from now on, for `shared`."""
+        if self._own is None:
+            self._own = np.zeros_like(self._log)
+
+    def _recorded(self, term: np.ndarray) -> None:
+        """Add an update's evidence on the window to the record (if one is kept)."""
+        if self._own is None:
+            return
+        i0, i1, j0, j1 = self._win
+        self._own[i0:i1, j0:j1] += term
+        self._own_any = True
+
     def user_evidence(self, user: str) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
         """(window, T) of `user`'s own normalised log-likelihood of b, if it is kept: the
         grid cells [i0:i1, j0:j1] of the area's axes (east, north); for diagnostics."""
@@ -531,6 +601,7 @@ class CommonErrorField:
         self._drift = drift
         self._resolution = resolution
         self._cap = cap
+        self.recording = False  # new areas keep their own evidence (`CommonError.record`)
         self.areas: list[CommonError] = []
         self._cells: dict[tuple[int, int], list[CommonError]] = {}
         # the areas of the places asked about since `forget_places`: a batch asks each
@@ -565,6 +636,8 @@ class CommonErrorField:
                         best, best_d = area, dist
         if best is None:
             best = CommonError(xy, self._prior, self._drift, self._resolution, self._cap)
+            if self.recording:
+                best.record()
             self.areas.append(best)
             self._cells.setdefault((ci, cj), []).append(best)
         return best

@@ -68,6 +68,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
+from laas.engine.handover import AreaState, HandoverError, LaneState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import Track
@@ -84,6 +85,8 @@ _CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new
 # 1-9 s), jumps of 1-6 m; in cities it is the most common receiver fault.
 _MULTIPATH_SHARE = 0.05
 _MULTIPATH_SIGMA = 3.0  # m, across the road
+_HANDED_MASS = 1e-9  # a hand-over carries the lane table where p(u) > this * its peak
+_HANDED_MARGIN = 10  # and this many u-cells (1 m) on either side
 
 
 @dataclass
@@ -145,6 +148,74 @@ class CooperativeLaneFilter(LaneFilter):
 
     def segment_groups(self) -> int:
         return len({lanes.segment.id for lanes in list(self._lanes.values())})
+
+    def export_lanes(self, user: str) -> LaneState | None:
+        kept = self._lanes.get(user)
+        if kept is None:
+            return None
+        # only the u-cells where the posterior of u = n . b holds mass, and a few more
+        # (the next worker's posterior, which pools the same evidence, holds about the
+        # same): a few dozen rows, not the hundreds the window's margin keeps fresh
+        mass = kept.area.u_moments(kept.normal)[:, 0]
+        held = np.flatnonzero(mass > _HANDED_MASS * mass.max())
+        lo = max(int(held[0]) - _HANDED_MARGIN, 0)
+        hi = min(int(held[-1]) + 1 + _HANDED_MARGIN, kept.area.u.size)
+        return LaneState(
+            kept.segment.id, kept.normal.copy(), kept.area.u.size, lo, kept.alpha[lo:hi].copy()
+        )
+
+    def import_lanes(self, user: str, state: LaneState, segment: Segment, at: np.ndarray) -> None:
+        """The table's u-cells as given; the others (which the old area's posterior held
+        no mass at) the given cells' marginal lane probabilities."""
+        area = self._errors.at(at)
+        lanes = len(segment.lanes)
+        if state.cells != area.u.size or state.alpha.shape[1] != lanes or not len(state.alpha):
+            self._lanes.pop(user, None)  # another grid or another map: start afresh
+            return
+        given = np.maximum(state.alpha, 0.0)
+        marginal = given.sum(axis=0)
+        marginal = marginal / marginal.sum() if marginal.sum() > 0 else np.full(lanes, 1 / lanes)
+        alpha = np.tile(marginal, (area.u.size, 1))
+        alpha[state.lo : state.lo + len(given)] = given
+        self._lanes[user] = _Lanes(segment, area, state.normal.copy(), alpha)
+
+    def record_areas(self) -> None:
+        self._errors.recording = True
+        for area in self._errors.areas:
+            area.record()
+
+    def export_areas(self, box: tuple[float, float, float, float]) -> list[AreaState]:
+        x0, y0, x1, y1 = box
+        out = []
+        for area in self._errors.areas:
+            e, n = float(area.centre[0]), float(area.centre[1])
+            if x0 <= e <= x1 and y0 <= n <= y1:
+                found = area.shared()
+                if found is not None:
+                    out.append(AreaState((e, n), area.u.size, found[0], found[1]))
+        return out
+
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
+        taken = 0
+        for state in states:
+            e, n = state.centre
+            if box is not None and not (box[0] <= e <= box[2] and box[1] <= n <= box[3]):
+                continue
+            area = self._errors.at(np.array(state.centre))
+            if state.cells != area.u.size:
+                continue  # another prior: not the same grid
+            try:
+                area.take_shared(state.window, state.log)
+            except ValueError as exc:
+                raise HandoverError(f"hand-over from {source}: {exc}") from None
+            taken += 1
+        self._errors.forget_places()
+        return taken
 
     def corrections(self, positions: np.ndarray, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each area of the batch brought to the batch's time t once, then read."""

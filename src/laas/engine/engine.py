@@ -27,6 +27,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
+from laas.engine.handover import AreaState, UserState
 from laas.engine.lanefilter import Placement, make_lane_filter
 from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
 from laas.engine.transition import motion_fit
@@ -34,6 +35,8 @@ from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
 __all__ = ["Engine", "EngineStats"]
+
+_HANDOVER_REACH = 10_000.0  # m: a handed-over track this far off the map is not ours
 
 
 @dataclass
@@ -237,6 +240,71 @@ class Engine:
         if self._tracks.pop(user, None) is not None:
             self._lanes.leave(user)
             self.stats.expired += expired
+
+    # -- hand-over between workers (laas.engine.handover) ---------------------------------
+
+    def export_user(self, user: str) -> UserState | None:
+        """`user`'s track and lane table, for the worker of the region it goes to; None
+        if it has no track."""
+        track = self._tracks.get(user)
+        if track is None:
+            return None
+        x, p = track.state()
+        f = track.last_fix
+        heading = f.heading + self._convergence  # back to a true bearing
+        return UserState(
+            x,
+            p,
+            (f.t, f.e, f.n, f.speed, heading, f.accuracy),
+            track.dt,
+            self._lanes.export_lanes(user),
+        )
+
+    def import_user(self, user: str, state: UserState) -> bool:
+        """Go on with `user` from a hand-over: its track and lane table as the old worker
+        left them. Not taken (False) if `user` already has a track as new, or if the
+        state's position lies more than `_HANDOVER_REACH` outside the map's bounds (a
+        state from another map). A state older than `track_timeout` is taken, and its
+        track restarts at the next fix, as any track's would."""
+        t, e, n, speed, heading, accuracy = state.fix
+        known = self._tracks.get(user)
+        if known is not None and known.t >= t:
+            return False
+        x0, y0, x1, y1 = self.map.bounds
+        reach = _HANDOVER_REACH
+        if not (x0 - reach <= e <= x1 + reach and y0 - reach <= n <= y1 + reach):
+            return False
+        fix = Fix(t, e, n, speed, heading - self._convergence, accuracy)
+        track = Track.restore(self.config, state.x, state.p, fix, state.dt)
+        self._lanes.leave(user)
+        self._tracks[user] = track
+        lanes = state.lanes
+        segment = None if lanes is None else self.map.segments.get(lanes.segment)
+        if lanes is not None and segment is not None:
+            self._lanes.import_lanes(user, lanes, segment, track.position)
+        return True
+
+    def record_areas(self) -> None:
+        """Keep each area's own evidence from now on, for `export_areas` (a regional
+        worker, which shares it with its neighbours)."""
+        self._lanes.record_areas()
+
+    def export_areas(self, box: tuple[float, float, float, float]) -> list[AreaState]:
+        """The evidence about the common error that this engine's own users gave since
+        the last export, for the areas whose centre lies in `box` (x0, y0, x1, y1 in the
+        map's frame; default mode, once `record_areas` was called)."""
+        return self._lanes.export_areas(box)
+
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
+        """A neighbour's `export_areas`, those whose centre lies in `box` (None: all),
+        folded into the areas here at their centres (`CommonError.take_shared`); how
+        many were taken."""
+        return self._lanes.import_areas(source, states, box)
 
     # -- answers ---------------------------------------------------------------------------
 

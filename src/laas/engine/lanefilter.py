@@ -16,6 +16,7 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError
+from laas.engine.handover import AreaState, LaneState
 from laas.engine.tracking import Track
 from laas.map.hdmap import Segment
 
@@ -68,6 +69,35 @@ class LaneFilter(ABC):
     @abstractmethod
     def segment_groups(self) -> int:
         """Road elements that hold users now."""
+
+    def export_lanes(self, user: str) -> LaneState | None:
+        """`user`'s lane table for a hand-over (`laas.engine.handover`); None: none kept."""
+        return None
+
+    def import_lanes(self, user: str, state: LaneState, segment: Segment, at: np.ndarray) -> None:
+        """Take `user`'s lane table from a hand-over, in `segment`, the user at `at`
+        (by default none is kept: the user starts afresh)."""
+        return None
+
+    def record_areas(self) -> None:
+        """Keep each area's own evidence from now on, for `export_areas` (by default
+        there are no areas)."""
+        return None
+
+    def export_areas(self, box: tuple[float, float, float, float]) -> list[AreaState]:
+        """The own evidence since the last export of the areas whose centre lies in
+        (x0, y0, x1, y1)."""
+        return []
+
+    def import_areas(
+        self,
+        source: str,
+        states: list[AreaState],
+        box: tuple[float, float, float, float] | None = None,
+    ) -> int:
+        """Fold in a neighbour's own evidence of its areas (from `source`) whose centre
+        lies in `box` (None: all); how many."""
+        return 0
 
 
 def make_lane_filter(config: EngineConfig) -> LaneFilter:

@@ -175,6 +175,21 @@ class Track:
         """2x2 covariance of the position, m^2."""
         return self._P[:2, :2].copy()
 
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x (4,), P (4, 4)) copies: what a hand-over carries (`laas.engine.handover`)."""
+        return self._x.copy(), self._P.copy()
+
+    @classmethod
+    def restore(
+        cls, config: EngineConfig, x: np.ndarray, p: np.ndarray, last_fix: Fix, dt: float
+    ) -> Track:
+        """A track that goes on from state x, P after `last_fix` (a hand-over)."""
+        track = cls(config, last_fix)
+        track._x = np.asarray(x, dtype=float).copy()
+        track._P = np.asarray(p, dtype=float).copy()
+        track.dt = dt
+        return track
+
     def position_at(self, t: float) -> np.ndarray:
         """(e, n) extrapolated to time t at constant velocity, without changing the track."""
         return self.position + self.velocity * (t - self.t)

@@ -173,6 +173,7 @@ class LocalDeployment:
                     self.workers.append((provider, service))
             if self.workers:
                 self.provider, self.service = self.workers[0]
+                self._wait_listed([p.name for p, _ in self.workers])
             if self.metrics_port is not None:
                 self._serve_metrics(self.metrics_port)
         except BaseException:
@@ -221,6 +222,18 @@ class LocalDeployment:
         for broker in self.brokers.values():
             broker.stop()
         self.brokers.clear()
+
+    def _wait_listed(self, names: list[str], timeout: float = 10.0) -> None:
+        """Wait until the user core lists every worker, so that a participant started
+        now finds the worker of each region (not only the first announced)."""
+        deadline = time.monotonic() + timeout
+        while {s.name for s in self.cores["user"].services} < set(names):
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"the user core did not list the workers {names} within {timeout:g} s; "
+                    "are the backbone and the service core running?"
+                )
+            time.sleep(0.02)
 
     def __enter__(self) -> LocalDeployment:
         return self.start()

@@ -83,6 +83,16 @@ class WorkerCollector(Collector):
         forgotten.add_metric(["expired"], stats.expired)
         forgotten.add_metric(["evicted"], stats.evicted)
         yield forgotten
+        handovers = CounterMetricFamily(
+            "laas_handovers",
+            "Regional hand-overs: answers that carried a user's state out, states taken in, "
+            "refused (could not be opened or read), skipped (too large to hand over).",
+            labels=["way"],
+        )
+        for way in ("out", "in", "refused", "skipped"):
+            field = {"out": "handed_out", "in": "handed_in"}.get(way, f"handover_{way}")
+            handovers.add_metric([way], getattr(stats, field))
+        yield handovers
         yield CounterMetricFamily(
             "laas_engine_seconds",
             "Time spent in the engine, all fixes together.",

@@ -10,8 +10,14 @@ worker whose coverage holds it and stays with that worker while it is inside
 it is ``overlap`` metres past it, and the new worker has been estimating the common
 error of that side from its own users all along.
 
-Each worker keeps its own common-error areas; the common error on either side of a
-border is estimated twice, each time from the users routed to that worker.
+Hand-over (`laas.worker.service`): while a user's fix lies past its worker's border
+(in the overlap, outside its ``strip``), the worker adds the user's state to the
+answer, sealed for the family (`laas.engine.handover`); the participant hands the
+latest to the next worker with its first fix there (`ldm.routing.RoutedSession`), which
+goes on with the user's track and lane table. And each worker sends the others its own
+users' evidence about the common error of its areas (a family note, every
+``share_every`` seconds), which those whose coverage holds an area fold into theirs, so
+the common error on either side of a border is estimated from every user near it.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ class Region:
     count: int
     box: tuple[float, float, float, float]  # x0, y0, x1, y1 in the map's UTM frame, m
     coverage: list[tuple[float, float]]  # (lon, lat) ring, the box grown by the overlap
+    strip: tuple[float, float, float, float] | None = None  # the box without the overlap
 
     @property
     def name(self) -> str:
@@ -59,7 +66,10 @@ def split(
         a = lo + k * width - (overlap if k > 0 else margin)
         b = lo + (k + 1) * width + (overlap if k < count - 1 else margin)
         box = (a, y0 - margin, b, y1 + margin) if along_x else (x0 - margin, a, x1 + margin, b)
-        regions.append(Region(k, count, box, _ring(hdmap, box)))
+        a = lo + k * width if k > 0 else a
+        b = lo + (k + 1) * width if k < count - 1 else b
+        strip = (a, box[1], b, box[3]) if along_x else (box[0], a, box[2], b)
+        regions.append(Region(k, count, box, _ring(hdmap, box), strip))
     return regions
 
 

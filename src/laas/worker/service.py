@@ -29,6 +29,16 @@ What the worker refuses, each with an error reply ``{"error": {"kind", "message"
 - ``stale``: a duplicate, or older than the pseudonym's last fix;
 - ``internal``: the engine failed on this fix (logged; a bug to report).
 
+A regional worker (`laas.worker.regions`) hands its users over at its border: while a
+fix lies past the border (outside its ``strip``), the answer carries the user's state
+(`Engine.export_user`) sealed with the family's key (`ldm.security.crypto.family_cipher`)
+as ``handover``; a fix that brings one (the first to this worker, `ldm.RoutedSession`)
+has it opened and taken (`Engine.import_user`) before the engine answers it. One that
+cannot be opened or read is counted (``handover_refused``) and the fix answered as a new
+track's. Every ``share_every`` seconds the worker sends its users' evidence about the
+common error of its areas to the family (`Provider.note`), and takes what the others
+send for the areas its coverage holds (`Engine.import_areas`).
+
 A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
 seconds of the worker's wall clock after its last accepted fix, whatever its timestamps
 say, and the worker holds at most ``max_pseudonyms`` of them (the least recently heard
@@ -38,6 +48,7 @@ goes first), so neither a participant's clock nor a flood of pseudonyms grows it
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
@@ -49,10 +60,20 @@ from pydantic import Field, ValidationError
 
 from laas.config import EngineConfig, Settings
 from laas.engine.engine import Engine
+from laas.engine.handover import (
+    HandoverError,
+    areas_from_bytes,
+    areas_to_bytes,
+    user_from_bytes,
+    user_to_bytes,
+)
 from laas.map.hdmap import HdMap
-from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, problems
+from laas.models import HANDOVER_MAX, CorrectedPosition, ErrorReply, GpsMeasurement, problems
 from laas.worker.regions import Region
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
+from ldm.errors import CryptoError
+from ldm.security.crypto import SessionCipher, family_cipher
+from ldm.security.identity import SigningKey
 
 __all__ = [
     "SERVICE_NAME",
@@ -65,6 +86,7 @@ __all__ = [
 ]
 
 SERVICE_NAME = "laas"
+_HANDOVER_AAD = "laas-handover/1"
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +124,11 @@ class WorkerConfig(Settings):
         default=100_000, ge=1, description="pseudonyms held at once; the stalest go first"
     )
     expire_every: float = Field(default=1.0, gt=0, description="housekeeping interval, s")
+    share_every: float = Field(
+        default=1.0,
+        gt=0,
+        description="a regional worker sends its area evidence this often (fix time), s",
+    )
 
 
 @dataclass
@@ -135,6 +162,10 @@ class WorkerStats:
     expired: int = 0  # pseudonyms forgotten after track_timeout of silence
     evicted: int = 0  # pseudonyms forgotten because max_pseudonyms were held
     engine_seconds: float = 0.0  # time spent in the engine (perf_counter)
+    handed_out: int = 0  # answers that carried the user's state for the next worker
+    handed_in: int = 0  # fixes whose hand-over was taken
+    handover_refused: int = 0  # hand-overs that could not be opened or read
+    handover_skipped: int = 0  # states too large to hand over (models.HANDOVER_MAX)
 
     @property
     def refusals(self) -> dict[str, int]:
@@ -171,8 +202,17 @@ class LaasService:
         *,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        region: Region | None = None,
+        family: SessionCipher | None = None,
     ) -> None:
         self.engine = Engine(hdmap, config)
+        self.region = region
+        self._family = family if region is not None else None
+        """Seals and opens hand-overs; None: no hand-over (one worker for the map)."""
+        self.notes: Callable[[bytes], None] | None = None
+        """Sends the area evidence to the family (`Provider.note`); None: not shared."""
+        if self._family is not None:
+            self.engine.record_areas()
         self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
         self._map = hdmap
@@ -192,6 +232,7 @@ class LaasService:
         self._clock = clock
         self._wall = wall_clock
         self._next_expiry = clock() + self.config.expire_every
+        self._next_share = -math.inf  # fix time (s) of the next share of area evidence
         self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
         self.observer: Callable[[Sequence[Observation]], None] | None = None
         """Shown every batch of answered fixes, on the worker thread (a live map);
@@ -225,6 +266,7 @@ class LaasService:
                 work.append((i, request.pseudonym, checked))
         if work:
             started = time.perf_counter()
+            self._hand_in(work)
             try:
                 answers = self.engine.process_many([(u, m) for _, u, m in work])
             except Exception:
@@ -242,6 +284,8 @@ class LaasService:
                 self.timer("engine", spent)
             for (i, _, m), answer in zip(work, answers, strict=True):
                 replies[i] = self._reply(m, answer)
+            if self._family is not None:
+                self._hand_out(work, answers, replies)
             if self.observer is not None:
                 seen = [
                     Observation(u, m, a)
@@ -253,7 +297,86 @@ class LaasService:
                 except Exception:
                     log.exception("the observer failed; the answers went out as usual")
         self._housekeep(now)
+        if work:
+            self._share(max(m.timestamp for _, _, m in work) / 1000.0)
         return replies
+
+    # -- regions: hand-over and shared areas (module docstring) ----------------------------
+
+    def _hand_in(self, work: Sequence[tuple[int, str, GpsMeasurement]]) -> None:
+        """Take the hand-overs the fixes bring, before the engine answers them."""
+        for _, pseudonym, m in work:
+            if m.handover is None:
+                continue
+            try:
+                if self._family is None:
+                    raise CryptoError("this worker serves no region: it takes no hand-over")
+                state = user_from_bytes(self._family.open(m.handover, _HANDOVER_AAD))
+                if self.engine.import_user(pseudonym, state):
+                    self.stats.handed_in += 1
+            except (CryptoError, HandoverError) as exc:
+                self.stats.handover_refused += 1
+                # the first said loudly (workers under different identity keys refuse
+                # every one), the rest counted (laas_handovers_total{way="refused"})
+                log.log(
+                    logging.WARNING if self.stats.handover_refused == 1 else logging.DEBUG,
+                    "a hand-over was refused, the fix taken as a new track's (%s); do all "
+                    "regional workers serve under one identity key (--identity)?",
+                    exc,
+                )
+
+    def _hand_out(
+        self,
+        work: Sequence[tuple[int, str, GpsMeasurement]],
+        answers: Sequence[CorrectedPosition | None],
+        replies: list[Mapping[str, Any]],
+    ) -> None:
+        """Add the user's sealed state to each answer to a fix past the border."""
+        assert self.region is not None and self.region.strip is not None
+        assert self._family is not None
+        x0, y0, x1, y1 = self.region.strip
+        xy = self._map.projection.to_utm_array(
+            [m.longitude for _, _, m in work], [m.latitude for _, _, m in work]
+        )
+        for (i, pseudonym, _), answer, (x, y) in zip(work, answers, xy, strict=True):
+            if answer is None or (x0 <= x <= x1 and y0 <= y <= y1):
+                continue
+            state = self.engine.export_user(pseudonym)
+            if state is not None:
+                token = self._family.seal(user_to_bytes(state), _HANDOVER_AAD)
+                if len(token) > HANDOVER_MAX:  # a wide lane table: the user starts afresh
+                    self.stats.handover_skipped += 1
+                    continue
+                replies[i] = {**replies[i], "handover": token}
+                self.stats.handed_out += 1
+
+    def _share(self, t: float) -> None:
+        """Every share_every s of the fixes' time (a simulation sped up shares as
+        often as live): this worker's own area evidence to the family."""
+        if self.notes is None or self.region is None or t < self._next_share:
+            return
+        self._next_share = t + self.config.share_every
+        states = self.engine.export_areas(self._reach())
+        if states:
+            try:
+                self.notes(areas_to_bytes(states))
+            except Exception:
+                log.exception("the area evidence was not sent; it is lost to the neighbours")
+
+    def take_note(self, sender: str, payload: bytes) -> None:
+        """A sibling's area evidence (`Provider`'s ``on_note``, the worker thread)."""
+        try:
+            self.engine.import_areas(sender, areas_from_bytes(payload), self._reach())
+        except HandoverError as exc:
+            log.warning("area evidence from %s refused: %s", sender, exc)
+
+    def _reach(self) -> tuple[float, float, float, float]:
+        """The areas this worker shares and takes: centres in its box grown by half an
+        area (an area reaches that far)."""
+        assert self.region is not None
+        x0, y0, x1, y1 = self.region.box
+        m = self.engine.config.bias_area / 2.0
+        return (x0 - m, y0 - m, x1 + m, y1 + m)
 
     def _check(self, request: Request, now: float) -> GpsMeasurement | ErrorReply:
         """The request's fix, or why it is refused; an accepted fix's session is noted."""
@@ -368,14 +491,23 @@ def start_worker(
     ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``, ``max_age``,
     ``data_qos``, ...).
     """
-    service = LaasService(hdmap, config, worker)
+    identity = provider_settings.pop("identity", None)
+    if identity is None and region is not None:
+        path = provider_settings.get("identity_file")
+        identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
+    family = None if region is None else family_cipher(identity, SERVICE_NAME)
+    service = LaasService(hdmap, config, worker, region=region, family=family)
     provider = Provider.create(
         cluster,
         service_spec(region),
         service.handle,
         batch_handler=service.handle_many,
+        identity=identity,
+        on_note=None if region is None else service.take_note,
         **provider_settings,
     )
+    if region is not None:
+        service.notes = provider.note
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)
     if region is not None:

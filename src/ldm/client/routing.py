@@ -15,6 +15,13 @@ the participant's position, which only the participant knows:
 A plain service of the family's own name with no coverage covers everywhere, so a
 participant written for regions works unchanged with one provider.
 
+Hand-over: a provider may put an opaque string ``handover`` in its replies (a regional
+LaaS worker does, near its border: the user's state, sealed for the family's other
+providers, `ldm.security.crypto.family_cipher`). The session keeps the latest one from
+its current provider and adds it, as the input's ``handover`` field, to the first input
+it sends to the next provider, which so goes on where the last one stopped. The
+participant cannot read it; the cores see it only inside the sealed envelopes.
+
 What the cores learn: which provider a pseudonym sends to, so a region, never a
 position (docs/security.md).
 """
@@ -35,9 +42,12 @@ from ldm.wire.messages import ServiceDescription
 if TYPE_CHECKING:
     from ldm.client.participant import Participant, Session
 
-__all__ = ["RoutedSession", "covers", "depth"]
+__all__ = ["HANDOVER", "RoutedSession", "covers", "depth"]
 
 Payload = dict[str, Any]
+
+HANDOVER = "handover"
+"""The reply field a provider hands over in, and the input field the next one gets it in."""
 
 
 def _polygon(desc: ServiceDescription) -> Any:
@@ -82,6 +92,12 @@ class RoutedSession:
         self._lock = threading.Lock()
         self.handovers = 0
         """How many times an input went to another provider than the one before it."""
+        self._token: tuple[str, str] | None = None  # (provider, its latest hand-over)
+        self._carry: str | None = None  # the token for the first input to a new provider
+        # guards the two above; never held while waiting, since replies are kept on the
+        # participant's network thread (a future's callback), which must not wait for
+        # `_lock`: that is held while a new session waits for its grant on that thread
+        self._token_lock = threading.Lock()
 
     @property
     def current(self) -> str | None:
@@ -97,7 +113,11 @@ class RoutedSession:
 
     def submit(self, payload: Mapping[str, Any], where: tuple[float, float]) -> Future[Payload]:
         """Send one input to the provider for (longitude, latitude) `where`."""
-        return self._session(where).submit(payload)
+        session, payload = self._routed(payload, where)
+        future = session.submit(payload)
+        name = session.service.name
+        future.add_done_callback(lambda f: self._keep(name, f))
+        return future
 
     def moved(self, metres: float, speed: float) -> bool:
         """Report motion to the current provider's session (`ldm.Session.moved`)."""
@@ -110,7 +130,35 @@ class RoutedSession:
         self, payload: Mapping[str, Any], where: tuple[float, float], timeout: float = 2.0
     ) -> Payload:
         """Send one input and wait for the reply (`ldm.Session.request`)."""
-        return self._session(where).request(payload, timeout)
+        session, payload = self._routed(payload, where)
+        reply = session.request(payload, timeout)
+        self._took(session.service.name, reply)
+        return reply
+
+    def _routed(
+        self, payload: Mapping[str, Any], where: tuple[float, float]
+    ) -> tuple[Session, Mapping[str, Any]]:
+        """The session for `where`, and the payload with the hand-over it carries (the
+        first input to a new provider)."""
+        session = self._session(where)
+        with self._token_lock:
+            carry, self._carry = self._carry, None
+        if carry is not None:
+            payload = {**payload, HANDOVER: carry}
+        return session, payload
+
+    def _keep(self, provider: str, future: Future[Payload]) -> None:
+        if not future.cancelled() and future.exception() is None:
+            self._took(provider, future.result())
+
+    def _took(self, provider: str, reply: Payload) -> None:
+        """Keep a reply's hand-over, if it is from the current provider (any thread)."""
+        token = reply.get(HANDOVER) if isinstance(reply, dict) else None
+        if isinstance(token, str):
+            current = self._current
+            with self._token_lock:
+                if current is not None and current.name == provider:
+                    self._token = (provider, token)
 
     def _session(self, where: tuple[float, float]) -> Session:
         with self._lock:
@@ -133,6 +181,10 @@ class RoutedSession:
             best = max(candidates, key=lambda s: (depth(s, where), s.name))
             if current is not None and best.name != current.name:
                 self.handovers += 1
+                with self._token_lock:
+                    token, self._token = self._token, None
+                    if token is not None and token[0] == current.name:
+                        self._carry = token[1]
             return self._open(best)
 
     def _open(self, desc: ServiceDescription) -> Session:

@@ -145,6 +145,12 @@ PROVIDER_COUNTERS: dict[str, tuple[str, str]] = {
         "ldm_provider_reply_batches",
         "Messages that carried more than one reply.",
     ),
+    "notes_sent": ("ldm_provider_notes_sent", "Family notes sent (Provider.note)."),
+    "notes_taken": ("ldm_provider_notes_taken", "Family notes of the others taken."),
+    "dropped_notes": (
+        "ldm_provider_notes_dropped",
+        "Family notes dropped: malformed, unauthentic, stale or replayed.",
+    ),
 }
 """The other `ProviderStats` fields: field -> (counter name, help)."""
 

@@ -16,6 +16,16 @@ Pay per batch: input arrives one envelope per message or many in one batch from 
 core (`ldm.wire.batch`), cut apart on arrival; the worker takes everything that waited
 (up to ``max_batch``), and the replies to it leave together, one batch once the worker
 has handled it all, or a single message when there is one.
+
+Family notes: the providers of one family (regional workers, `ldm.routing`), which
+serve under one identity, may pass each other what their neighbours need (a service's
+own business: the LaaS workers share their common-error evidence). `Provider.note`
+publishes on ``ldm/svc/{family}/note/{service}``, sealed with the family's key
+(`ldm.security.crypto.family_cipher`), which no core subscribes to and no broker can
+read; each other provider of the family given ``on_note`` gets it on its worker thread,
+as (sender, plaintext), once, in order: a note no newer than the sender's last, older
+than ``max_age``, or that fails authentication is dropped and counted
+(``ProviderStats.dropped_notes``).
 """
 
 from __future__ import annotations
@@ -35,7 +45,7 @@ from pydantic import ValidationError
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
 from ldm.ops.hops import Hops
-from ldm.security.crypto import KeyPair, SessionCipher, aad
+from ldm.security.crypto import KeyPair, SessionCipher, aad, family_cipher
 from ldm.security.identity import SigningKey, verify
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
@@ -93,6 +103,10 @@ class ProviderStats:
     """The handler raised, or its reply could not be encoded or sent."""
     reply_batches: int = 0
     """Messages that carried more than one reply (the rest went one per message)."""
+    notes_sent: int = 0
+    notes_taken: int = 0
+    dropped_notes: int = 0
+    """Family notes dropped: malformed, failing authentication, stale or replayed."""
 
 
 _REPLAY_IDS = 1024  # correlation ids remembered per participant key (within max_age)
@@ -150,6 +164,7 @@ class Provider(Worker[Event]):
         key: KeyPair | None = None,
         identity: SigningKey | None = None,
         batch_handler: BatchHandler | None = None,
+        on_note: Callable[[str, bytes], None] | None = None,
     ) -> None:
         super().__init__(
             f"ldm-provider-{spec.name}",
@@ -213,6 +228,12 @@ class Provider(Worker[Event]):
         None until the cluster's service list names it."""
         if self.cluster is None:
             self.transport.subscribe(topics.SERVICES, 1)
+        self.family = spec.family
+        self._family_cipher = None if spec.family is None else family_cipher(identity, spec.family)
+        self._on_note = on_note
+        self._note_times: dict[str, float] = {}  # sender -> its last note's time
+        if spec.family is not None and on_note is not None:
+            self.transport.subscribe(topics.family_note_filter(spec.family), 0)
 
     @classmethod
     def create(
@@ -224,11 +245,20 @@ class Provider(Worker[Event]):
         key: KeyPair | None = None,
         identity: SigningKey | None = None,
         batch_handler: BatchHandler | None = None,
+        on_note: Callable[[str, bytes], None] | None = None,
         **settings: Any,
     ) -> Provider:
         """Build a provider from a URL or settings plus any ProviderConfig field."""
         config = build(ProviderConfig, broker=BrokerSettings.of(broker), **settings)
-        return cls(config, spec, handler, key=key, identity=identity, batch_handler=batch_handler)
+        return cls(
+            config,
+            spec,
+            handler,
+            key=key,
+            identity=identity,
+            batch_handler=batch_handler,
+            on_note=on_note,
+        )
 
     def start(self, timeout: float | None = 10.0) -> Provider:
         """Connect, announce and serve in background threads."""
@@ -261,6 +291,40 @@ class Provider(Worker[Event]):
         if route is None:
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
         self._send(route, pseudonym, correlation_id, payload, now=True)
+
+    def note(self, payload: bytes) -> None:
+        """Send `payload` to the family's other providers (the module docstring)."""
+        if self.family is None or self._family_cipher is None:
+            raise SessionError(f"{self.name} is in no family: it has nobody to send notes to")
+        t = time.time()
+        sealed = self._family_cipher.seal(payload, _note_aad(self.name, t))
+        body = json.dumps({"t": t, "d": sealed}, separators=(",", ":")).encode()
+        self.transport.publish(topics.family_note(self.family, self.name), body, 0)
+        with self._count:
+            self.stats.notes_sent += 1
+
+    def _note(self, msg: Message) -> None:
+        """A family note (worker thread): opened, checked, given to ``on_note``."""
+        sender = topics.parse(msg.topic).service
+        if sender == self.name or self._on_note is None or self._family_cipher is None:
+            return
+        try:
+            body = json.loads(msg.payload)
+            t = float(body["t"])
+            if not time.time() - t <= self.config.max_age or t <= self._note_times.get(
+                sender, -1.0
+            ):
+                raise CryptoError("a stale or replayed note")
+            plaintext = self._family_cipher.open(str(body["d"]), _note_aad(sender, t))
+        except (CryptoError, ValueError, KeyError, TypeError, RecursionError):
+            self.stats.dropped_notes += 1
+            return
+        self._note_times[sender] = t
+        self.stats.notes_taken += 1
+        try:
+            self._on_note(sender, plaintext)
+        except Exception:
+            log.error("%s: a note from %s was not taken", self.name, sender, exc_info=True)
 
     @property
     def cached_ciphers(self) -> int:
@@ -325,12 +389,17 @@ class Provider(Worker[Event]):
                 for item in items:
                     if isinstance(item, Connected):
                         self._connected(time.time())
+                    elif self._is_note(item):
+                        self._note(item)
                     else:
                         self._input(item)
                 return
             run: list[Message] = []
             for item in items:
-                if isinstance(item, Connected):
+                if self._is_note(item):
+                    assert isinstance(item, Message)
+                    self._note(item)
+                elif isinstance(item, Connected):
                     self._inputs(run)
                     run = []
                     self._connected(time.time())
@@ -340,6 +409,13 @@ class Provider(Worker[Event]):
         finally:
             self._outbox.flush()
             self.stats.reply_batches = self._outbox.batches
+
+    def _is_note(self, item: Event) -> bool:
+        return (
+            self._on_note is not None
+            and isinstance(item, Message)
+            and topics.parse(item.topic).kind == "family_note"
+        )
 
     def tick(self, now: float) -> None:
         if now >= self._next_announce and self.transport.connected:
@@ -508,3 +584,8 @@ class Provider(Worker[Event]):
             if route.peer is not None:
                 sent = time.time()
                 route.peer.answered(correlation_id, sealed, sent, sent - self.config.max_age)
+
+
+def _note_aad(sender: str, t: float) -> str:
+    """A note's associated data: its sender and time, so neither can be changed."""
+    return f"note|{sender}|{t!r}"

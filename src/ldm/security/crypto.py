@@ -20,6 +20,7 @@ import base64
 import binascii
 import hmac
 import os
+from typing import TYPE_CHECKING
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import hashes
@@ -30,7 +31,10 @@ from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from ldm.errors import CryptoError
 
-__all__ = ["KeyPair", "SessionCipher", "aad", "input_tag"]
+if TYPE_CHECKING:
+    from ldm.security.identity import SigningKey
+
+__all__ = ["KeyPair", "SessionCipher", "aad", "family_cipher", "input_tag"]
 
 _NONCE = 12
 
@@ -94,6 +98,19 @@ class KeyPair:
         okm = HKDF(algorithm=hashes.SHA256(), length=64, salt=None, info=info).derive(shared)
         up, down = okm[:32], okm[32:]
         return SessionCipher(up, down) if initiator else SessionCipher(down, up)
+
+
+def family_cipher(identity: SigningKey, family: str) -> SessionCipher:
+    """The cipher the providers of one family share, for what they pass each other
+    (hand-overs through a participant, notes through their broker): the same
+    ChaCha20-Poly1305 as a session's, keyed
+
+        key = HKDF-SHA256(identity private key, info="ldm-family/1|" family)
+
+    Only holders of the family's identity key can read or make what it seals: not the
+    brokers, not the cores, not the participants that carry it."""
+    key = identity.derive(f"ldm-family/1|{family}".encode())
+    return SessionCipher(key, key)
 
 
 def input_tag(secret: bytes, c: str, t: float, k: str, d: str) -> str:

@@ -35,7 +35,9 @@ from pathlib import Path
 from typing import Any
 
 from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 from cryptography.hazmat.primitives.serialization import (
     Encoding,
     NoEncryption,
@@ -110,6 +112,13 @@ class SigningKey:
     def to_pem(self) -> bytes:
         """The private key as unencrypted PKCS#8 PEM: keep it secret."""
         return self._private.private_bytes(Encoding.PEM, PrivateFormat.PKCS8, NoEncryption())
+
+    def derive(self, info: bytes) -> bytes:
+        """A 32-byte secret for `info` that only holders of this key can compute:
+        HKDF-SHA256(private key, info). The providers of one family, which serve under
+        one identity, share it (`ldm.security.crypto.family_cipher`)."""
+        raw = self._private.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+        return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(raw)
 
     def sign(self, data: bytes) -> str:
         """The base64 Ed25519 signature of ``data``."""

@@ -61,6 +61,7 @@ _PARAMETERS: dict[str, str] = {
     "core": "An LDM core's name.",
     "svc_core": "The name of the core in whose cluster the service runs.",
     "user_core": "The name of the participant's core.",
+    "family": "A service family: the providers that share one service, each for a region.",
 }
 
 _LDM_MODELS: tuple[type[BaseModel], ...] = (
@@ -252,6 +253,19 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "A provider's signed goodbye (also its last will).",
             _ref(Withdrawal),
         ),
+        "FamilyNote": _message(
+            "FamilyNote",
+            "Family note",
+            "What one provider of a family passes the others (a regional LaaS worker: its "
+            "users' evidence about the common error of its areas): d sealed with the "
+            "family's key (ldm.security.crypto.family_cipher), t and the sender bound as "
+            "associated data. No core reads it.",
+            {
+                "type": "object",
+                "properties": {"t": {"type": "number"}, "d": {"type": "string"}},
+                "required": ["t", "d"],
+            },
+        ),
         "CoreStatus": _message(
             "CoreStatus",
             "Core status",
@@ -313,6 +327,12 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             [svc],
             ["ReplyEnvelope"],
             "A provider's reply to a pseudonym.",
+        ),
+        "familyNote": _channel(
+            topics.family_note("{family}", s),
+            [svc],
+            ["FamilyNote"],
+            "A provider's note to the other providers of its family.",
         ),
         "providerInputBatch": _channel(
             topics.provider_input_batch(s),
@@ -424,6 +444,22 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "Announce the service (retained), withdraw it when leaving.",
             1,
             retain=True,
+        ),
+        "providerSendsNotes": op(
+            "provider",
+            "send",
+            "familyNote",
+            ["FamilyNote"],
+            "Pass the family's other providers a note (Provider.note).",
+            0,
+        ),
+        "providerReceivesNotes": op(
+            "provider",
+            "receive",
+            "familyNote",
+            ["FamilyNote"],
+            "Take the family's other providers' notes (ldm/svc/{family}/note/+).",
+            0,
         ),
         "providerReceivesInput": op(
             "provider",

@@ -15,6 +15,8 @@ Topics that leave the user cluster carry only pseudonyms.
     ldm/svc/{service}/announce                     provider -> core: retained announcement
     ldm/svc/{service}/in/{pseudonym}               core -> provider: encrypted input
     ldm/svc/{service}/out/{pseudonym}              provider -> core: encrypted replies
+    ldm/svc/{family}/note/{service}                provider -> the family's other providers:
+                                                   a sealed note (no core reads it)
     ldm/bb/announce/{service}                      core -> cores: retained announcement
     ldm/bb/core/{core}                             core -> cores: retained liveness (will)
     ldm/bb/in/{svc_core}/{service}/{user_core}/{pseudonym}   user core -> service core
@@ -128,6 +130,15 @@ def provider_reply(service: str, pseudonym: str) -> str:
     return f"ldm/svc/{service}/out/{pseudonym}"
 
 
+def family_note(family: str, service: str) -> str:
+    """A note of provider `service` to the other providers of its `family`."""
+    return f"ldm/svc/{family}/note/{service}"
+
+
+def family_note_filter(family: str) -> str:
+    return f"ldm/svc/{family}/note/+"
+
+
 ANNOUNCE_FILTER: Final = "ldm/svc/+/announce"
 PROVIDER_REPLY_FILTER: Final = "ldm/svc/+/out/+"
 
@@ -211,6 +222,7 @@ Kind = Literal[
     "bb_input_batch",
     "bb_reply",
     "bb_reply_batch",
+    "family_note",
     "other",
 ]
 
@@ -220,7 +232,8 @@ class Topic(NamedTuple):
 
     ``client``: the participant's client id (``ldm/p/...``); ``service``; ``pseudonym``
     (single data messages); ``core``: the core a backbone topic is addressed to (or
-    whose liveness it carries); ``user_core``: the sender's core of backbone input.
+    whose liveness it carries); ``user_core``: the sender's core of backbone input;
+    ``family``: the family a note is for (its sender is ``service``).
     ``participant_up`` is any other topic under ``ldm/p/{client}/up/``; ``other`` any
     topic outside the layout.
     """
@@ -231,6 +244,7 @@ class Topic(NamedTuple):
     pseudonym: str = ""
     core: str = ""
     user_core: str = ""
+    family: str = ""
 
 
 _OTHER: Final = Topic("other")
@@ -272,6 +286,8 @@ def parse(topic: str) -> Topic:
                 return Topic("provider_reply_batch", service=service)
         elif what == "in":
             return Topic("provider_input", service=service, pseudonym=levels[4])
+        elif what == "note":
+            return Topic("family_note", service=levels[4], family=service)
         elif what == "out":
             return Topic("provider_reply", service=service, pseudonym=levels[4])
     elif area == "bb" and n >= 4:

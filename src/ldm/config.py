@@ -281,7 +281,7 @@ class CoreConfig(_Settings):
 
     @model_validator(mode="after")
     def _check_silence(self) -> Self:
-        silence = self.rotation.silence
+        silence = self.rotation.longest_silence
         if silence > self.rotation_period / 2 or silence >= self.idle_timeout:
             raise ValueError(
                 f"rotation.silence {silence:g} s must be at most half the rotation_period "

@@ -154,6 +154,43 @@ def test_silence_longer_than_half_the_period_is_refused() -> None:
         )
 
 
+def test_a_longest_silence_over_half_the_period_or_below_the_shortest_is_refused() -> None:
+    from ldm.config import build
+
+    with pytest.raises(ConfigError, match=r"rotation\.silence"):
+        build(
+            CoreConfig,
+            name="c",
+            cluster="mqtt://localhost:1",
+            rotation_period=120.0,
+            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 61.0},
+            idle_timeout=100.0,
+        )
+    with pytest.raises(ConfigError, match=r"silence_max 20 s is below silence 30 s"):
+        build(
+            CoreConfig,
+            name="c",
+            cluster="mqtt://localhost:1",
+            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 20.0},
+        )
+
+
+def test_silences_are_drawn_from_the_policys_range() -> None:
+    policy = RotationPolicy(strategy="epoch", silence=30.0, silence_max=90.0)
+    r = Rotator(policy, 30.0, 0.0, random.Random(3))
+    lengths = []
+    for k in range(200):
+        t = 1000.0 * (k + 1)
+        r.changed(t)
+        lengths.append(r.silent_until - t)
+        assert r.silent(t + 29.9) and not r.silent(t + 90.0)
+    assert min(lengths) >= 30.0 and max(lengths) <= 90.0
+    assert max(lengths) - min(lengths) > 50.0  # drawn, not fixed
+    fixed = Rotator(RotationPolicy(strategy="epoch", silence=15.0), 30.0, 0.0)
+    fixed.changed(10.0)
+    assert fixed.silent_until == 25.0
+
+
 def test_epochs_fall_on_multiples_of_the_period() -> None:
     assert next_rotation("epoch", 60.0, 1_000_000.5) == 1_000_020.0
     assert next_rotation("epoch", 60.0, 1_000_020.0) == 1_000_080.0

@@ -26,8 +26,9 @@ application answers itself meanwhile (a positioning client applies its last answ
 correction to its own fixes). With ``silence_max`` each silence is drawn anew, uniformly
 between ``silence`` and ``silence_max``, by the participant (from `random.SystemRandom`):
 a new pseudonym's first input then says nothing of which old one went quiet when, even
-where everyone changes at the same moment (``epoch``). The service learns no more under any of them than under ``periodic``: it sees
-fewer inputs (silence), or changes at times it could already see.
+where everyone changes at the same moment (``epoch``). The service learns no more under
+any of them than under ``periodic``: it sees fewer inputs (silence), or changes at times
+it could already see.
 
 Every change still obeys the core's rule that a session gets a new key at most once per
 ``rekey_interval``: `ldm.client.rotation.Rotator.may_change` checks it on the

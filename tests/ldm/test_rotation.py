@@ -141,7 +141,7 @@ def test_the_participant_changes_its_key_where_it_stops(
         p.stop()
 
 
-def test_silence_longer_than_half_the_period_is_refused() -> None:
+def test_silence_longer_than_the_period_less_rekey_interval_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"rotation\.silence"):
         from ldm.config import build
 
@@ -149,12 +149,12 @@ def test_silence_longer_than_half_the_period_is_refused() -> None:
             CoreConfig,
             name="c",
             cluster="mqtt://localhost:1",
-            rotation_period=10.0,
-            rotation={"strategy": "epoch", "silence": 6.0},
+            rotation_period=10.0,  # rekey_interval 2.5 s: at most 7.5 s
+            rotation={"strategy": "epoch", "silence": 7.6},
         )
 
 
-def test_a_longest_silence_over_half_the_period_or_below_the_shortest_is_refused() -> None:
+def test_a_longest_silence_over_the_limit_or_below_the_shortest_is_refused() -> None:
     from ldm.config import build
 
     with pytest.raises(ConfigError, match=r"rotation\.silence"):
@@ -163,8 +163,8 @@ def test_a_longest_silence_over_half_the_period_or_below_the_shortest_is_refused
             name="c",
             cluster="mqtt://localhost:1",
             rotation_period=120.0,
-            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 61.0},
-            idle_timeout=100.0,
+            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 91.0},
+            idle_timeout=120.0,
         )
     with pytest.raises(ConfigError, match=r"silence_max 20 s is below silence 30 s"):
         build(

@@ -47,8 +47,9 @@ __all__ = ["MAX_SILENCE", "RotationPolicy", "Strategy"]
 Strategy = Literal["periodic", "epoch", "distance", "stop"]
 
 MAX_SILENCE = 120.0  # s: the longest silence a policy may ask for (the core also keeps it
-#                      at most half its rotation period and below its idle_timeout, which
-#                      would drop a quiet session: `ldm.config.CoreConfig`)
+#                      at most its rotation period less rekey_interval (3/4 of it) and
+#                      below its idle_timeout, which would drop a quiet session:
+#                      `ldm.config.CoreConfig`)
 
 
 class RotationPolicy(BaseModel):

@@ -34,6 +34,8 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from scipy.sparse import coo_matrix  # type: ignore[import-untyped]
 from scipy.sparse.csgraph import connected_components  # type: ignore[import-untyped]
 
+from ldm.wire.rotation import MAX_SILENCE
+
 __all__ = [
     "ACCEL",
     "CANDIDATES",
@@ -46,7 +48,7 @@ __all__ = [
     "link",
 ]
 
-MAX_GAP = 25.0  # s: the longest silence (ldm.wire.rotation.MAX_SILENCE, public) and a margin
+MAX_GAP = MAX_SILENCE + 5.0  # s: the longest silence a policy may ask for (public) and a margin
 CANDIDATES = 12  # births kept per death, the least L: a crowd's unlikely members never win
 SIGMA_FIX = 2.0  # m: a fix's own noise per axis (the error the receiver shares with the
 #                  next fix, common and bias, cancels in the residual)

@@ -57,7 +57,7 @@ ACCEL = 2.0  # m/s^2: the braking and turning the constant-velocity model leaves
 #               car's firm braking); `link` takes others, `laas privacy` tries 0.5 as well
 GATE = 16.25  # chi-square of 4 dof at 99.73 % (3 sigma)
 NO_LINK = 1000.0  # a death or birth left alone: above any gated L (< GATE + the ln terms,
-#                   about 60 at MAX_GAP), so the assignment links all it can first
+#                   about 70 at MAX_GAP), so the assignment links all it can first
 
 
 @dataclass(frozen=True, slots=True)

@@ -128,8 +128,10 @@ their backstop, 6 min as C-ITS's longest; ``/no-map``: the participants answer t
 without the lane map, on their last answered lane)."""
 
 DEFAULT_STRATEGY = "epoch+silent30-90"
-"""The LaaS deployment's default, chosen by `laas privacy`: the least re-linking among the
-strategies whose lane accuracy cost stays within 0.02 on every place measured."""
+"""The LaaS deployment's default (docs/security.md): within 0.02 of lane accuracy on every
+place measured; ``epoch+silent60`` re-links less against this module's straight-line
+tracker, but more against one that predicts along the road, as a service with the map
+can, and there silences of random length do better."""
 
 
 def _sim_rng(seed: int, user: str) -> random.Random:

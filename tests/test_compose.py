@@ -411,7 +411,16 @@ def test_cores_and_worker_match_the_topology() -> None:
         assert command[command.index("--rotation-period") + 1] == "120"
     user_core = services["core-user"]["command"]  # the core that grants sessions
     assert user_core[user_core.index("--rotation") + 1] == "epoch"
-    assert user_core[user_core.index("--silence") + 1] == "15"
+    flag = {f: user_core[user_core.index(f) + 1] for f in ("--silence", "--silence-max")}
+    assert flag == {"--silence": "30", "--silence-max": "90"}
+    # the core takes that policy: its longest silence under half the period and idle_timeout
+    CoreConfig(
+        name="user",
+        cluster="mqtt://broker-user:1883",
+        rotation_period=float(user_core[user_core.index("--rotation-period") + 1]),
+        idle_timeout=float(user_core[user_core.index("--idle-timeout") + 1]),
+        rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 90.0},
+    )
     worker = services["worker"]
     assert worker["command"][:2] == ["laas", "worker"]
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"

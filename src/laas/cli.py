@@ -383,6 +383,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
         reply_timeout=max(5.0, 2 * a.max_age + 1.0),  # the participant's own limit, and more
         max_age=a.max_age,
         progress=progress_printer("  sent", "fixes"),
+        hdmap=hdmap,  # a silent user's own answer goes on the map's lanes
         service_keys={"laas": a.service_key} if a.service_key else {},
         anchors=a.trust_anchor,
         core_key=a.core_key,

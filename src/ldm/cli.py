@@ -117,7 +117,15 @@ def _parser() -> argparse.ArgumentParser:
         type=float,
         default=RotationPolicy().silence,
         help=f"seconds a participant sends nothing after each change (default "
-        f"{RotationPolicy().silence:g}, at most {MAX_SILENCE:g})",
+        f"{RotationPolicy().silence:g}, at most {MAX_SILENCE:g}); with --silence-max the "
+        "shortest",
+    )
+    core.add_argument(
+        "--silence-max",
+        type=float,
+        default=None,
+        help="the longest silence: each participant draws each of its silences uniformly "
+        "between --silence and this (default: always --silence)",
     )
     core.add_argument(
         "--max-payload",
@@ -240,7 +248,11 @@ def core_config(args: argparse.Namespace) -> CoreConfig:
         cluster=cluster,
         backbone=backbone,
         rotation_period=args.rotation_period,
-        rotation={"strategy": args.rotation, "silence": args.silence},
+        rotation={
+            "strategy": args.rotation,
+            "silence": args.silence,
+            "silence_max": args.silence_max,
+        },
         grace=args.grace,
         idle_timeout=args.idle_timeout,
         service_ttl=args.service_ttl,

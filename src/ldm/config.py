@@ -281,12 +281,16 @@ class CoreConfig(_Settings):
 
     @model_validator(mode="after")
     def _check_silence(self) -> Self:
-        silence = self.rotation.silence
-        if silence > self.rotation_period / 2 or silence >= self.idle_timeout:
+        # Each pseudonym is used for at least rekey_interval of its period (else, under
+        # ``epoch``, it would be too young to change at the next multiple and skip it).
+        silence = self.rotation.longest_silence
+        longest = self.rotation_period - self.rekey_interval
+        if silence > longest or silence >= self.idle_timeout:
             raise ValueError(
-                f"rotation.silence {silence:g} s must be at most half the rotation_period "
-                f"({self.rotation_period:g} s) and below idle_timeout ({self.idle_timeout:g} "
-                "s): a participant silent longer would rarely send, or lose its session"
+                f"rotation.silence {silence:g} s (the longest) must be at most the "
+                f"rotation_period less rekey_interval ({longest:g} s) and below idle_timeout "
+                f"({self.idle_timeout:g} s): a participant silent longer would rarely send, "
+                "or lose its session"
             )
         return self
 

@@ -141,7 +141,7 @@ def test_the_participant_changes_its_key_where_it_stops(
         p.stop()
 
 
-def test_silence_longer_than_half_the_period_is_refused() -> None:
+def test_silence_longer_than_the_period_less_rekey_interval_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"rotation\.silence"):
         from ldm.config import build
 
@@ -149,9 +149,46 @@ def test_silence_longer_than_half_the_period_is_refused() -> None:
             CoreConfig,
             name="c",
             cluster="mqtt://localhost:1",
-            rotation_period=10.0,
-            rotation={"strategy": "epoch", "silence": 6.0},
+            rotation_period=10.0,  # rekey_interval 2.5 s: at most 7.5 s
+            rotation={"strategy": "epoch", "silence": 7.6},
         )
+
+
+def test_a_longest_silence_over_the_limit_or_below_the_shortest_is_refused() -> None:
+    from ldm.config import build
+
+    with pytest.raises(ConfigError, match=r"rotation\.silence"):
+        build(
+            CoreConfig,
+            name="c",
+            cluster="mqtt://localhost:1",
+            rotation_period=120.0,
+            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 91.0},
+            idle_timeout=120.0,
+        )
+    with pytest.raises(ConfigError, match=r"silence_max 20 s is below silence 30 s"):
+        build(
+            CoreConfig,
+            name="c",
+            cluster="mqtt://localhost:1",
+            rotation={"strategy": "epoch", "silence": 30.0, "silence_max": 20.0},
+        )
+
+
+def test_silences_are_drawn_from_the_policys_range() -> None:
+    policy = RotationPolicy(strategy="epoch", silence=30.0, silence_max=90.0)
+    r = Rotator(policy, 30.0, 0.0, random.Random(3))
+    lengths = []
+    for k in range(200):
+        t = 1000.0 * (k + 1)
+        r.changed(t)
+        lengths.append(r.silent_until - t)
+        assert r.silent(t + 29.9) and not r.silent(t + 90.0)
+    assert min(lengths) >= 30.0 and max(lengths) <= 90.0
+    assert max(lengths) - min(lengths) > 50.0  # drawn, not fixed
+    fixed = Rotator(RotationPolicy(strategy="epoch", silence=15.0), 30.0, 0.0)
+    fixed.changed(10.0)
+    assert fixed.silent_until == 25.0
 
 
 def test_epochs_fall_on_multiples_of_the_period() -> None:

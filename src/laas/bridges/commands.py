@@ -10,7 +10,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from laas.bridges.metrics import watch_bridge
 from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
@@ -20,6 +20,9 @@ from ldm import BrokerSettings
 from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
 from ldm.ops.logs import configure
+
+if TYPE_CHECKING:
+    from laas.map.hdmap import HdMap
 
 __all__ = ["add_bridge_commands"]
 
@@ -43,7 +46,7 @@ def _own_broker(a: argparse.Namespace) -> BrokerSettings:
     return broker_settings(a.cluster, a.ca_file, a.username, a.password_env)
 
 
-def _pool(a: argparse.Namespace, own: BrokerSettings) -> DevicePool:
+def _pool(a: argparse.Namespace, own: BrokerSettings, hdmap: HdMap | None = None) -> DevicePool:
     devices = own
     if a.device_accounts:
         devices = broker_settings(a.cluster, a.ca_file, "device", a.device_password_env)
@@ -55,7 +58,7 @@ def _pool(a: argparse.Namespace, own: BrokerSettings) -> DevicePool:
         core_key=a.core_key,
         track_timeout=a.track_timeout,
     )
-    return DevicePool(config)
+    return DevicePool(config, hdmap=hdmap)
 
 
 def _pool_args(p: argparse.ArgumentParser) -> None:
@@ -138,7 +141,8 @@ def _cmd_cam(a: argparse.Namespace) -> int:
     _logging(a)
     own = _own_broker(a)
     config = build(CamConfig, topic_filter=a.topic, answer_topic=a.answer_topic, prefix=a.prefix)
-    return _serve(CamBridge(own, _pool(a, own), HdMap.load(a.map), config), "cam", a)
+    hdmap = HdMap.load(a.map)  # lane numbers, and the devices' own answers while silent
+    return _serve(CamBridge(own, _pool(a, own, hdmap), hdmap, config), "cam", a)
 
 
 def _print_answer(answer: Answer) -> None:

@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from laas.deadreckon import dead_reckon
 from laas.discovery import wait_for_service
 from laas.errors import LaasError
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.worker.service import SERVICE_NAME
 from ldm import (
@@ -183,8 +184,12 @@ class DevicePool:
         *,
         clock: Callable[[], float] = time.monotonic,
         service: str = SERVICE_NAME,
+        hdmap: HdMap | None = None,
     ) -> None:
         self.config = config
+        self.hdmap = hdmap
+        """The lane map a silent device's own answer is placed on (`laas.deadreckon`);
+        None: its last answered lane."""
         self.stats = PoolStats()
         self.service = service
         self._clock = clock
@@ -376,7 +381,7 @@ class DevicePool:
             # The session keeps quiet after a change of pseudonym: answer as the device would.
             self.stats.answered += 1
             self.stats.silent += 1
-            self._pass_on(device, dead_reckon(*device.last, fix), on)
+            self._pass_on(device, dead_reckon(*device.last, fix, self.hdmap), on)
             return
         if error is not None:
             self.stats.lost += 1

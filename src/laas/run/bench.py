@@ -684,7 +684,9 @@ def _privacy(
     hdmap = HdMap.load(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), seed=0)
     with _deployment(kind, hdmap, period / speedup) as deployment:
-        live = run_participants(deployment.user_url, trace, speedup=speedup, **deployment.trust)
+        live = run_participants(
+            deployment.user_url, trace, speedup=speedup, hdmap=hdmap, **deployment.trust
+        )
         rotations = deployment.cores["user"].stats.rotations
     result = score(hdmap, trace, live.answers) if live.answered else None
     return PrivacyRun(

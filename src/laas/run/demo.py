@@ -82,6 +82,7 @@ def run_demo(
                 trace,
                 speedup=speedup,
                 progress=progress_printer("  sent", "fixes"),
+                hdmap=hdmap,
                 **deployment.trust,
             )
         finally:

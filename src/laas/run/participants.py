@@ -29,6 +29,7 @@ from pydantic import ValidationError
 
 from laas.deadreckon import dead_reckon
 from laas.discovery import wait_for_service
+from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, read_reply
 from laas.sim.scenario import Trace
 from laas.worker.service import SERVICE_NAME
@@ -228,6 +229,7 @@ def run_participants(
     reply_timeout: float = 5.0,
     discovery_timeout: float = 20.0,
     progress: Callable[[int, int], None] | None = None,
+    hdmap: HdMap | None = None,
     **participant_settings: Any,
 ) -> LiveRun:
     """Drive every user of `trace` through the user-cluster broker at `cluster`.
@@ -236,6 +238,9 @@ def run_participants(
     ids. With it, each user logs in as its own account, `account_prefix` + user, with the
     password of `cluster` and that name as client id: what a broker that confines every
     account to its own topics (`use_username_as_clientid` and a %u ACL) requires.
+
+    A fix the session keeps quiet about (the rotation policy's silence) gets the user's own
+    answer (`laas.deadreckon`), on `hdmap`'s lanes when it is given.
     """
     base = BrokerSettings.of(cluster)
     logins: dict[str, Login]
@@ -272,7 +277,7 @@ def run_participants(
             fix = trace.fixes[reply.index]
             held = last.get(fix.user)
             if reply.silent and held is not None:  # as the device would: dead-reckoned
-                run.answers[reply.index] = dead_reckon(held[0], held[1], fix.measurement)
+                run.answers[reply.index] = dead_reckon(held[0], held[1], fix.measurement, hdmap)
                 run.silent += 1
                 continue
             if reply.answer is None:

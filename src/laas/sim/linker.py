@@ -17,7 +17,9 @@ last fix to b's first gives
 
 and the pair is a candidate when D^2 < ``GATE`` (the 3-sigma gate of 4 dof), among the
 ``CANDIDATES`` of the death's with the least L (the ln terms keep a far birth after a long
-gap from beating a near one after a short gap). All deaths and births are then joined at
+gap from beating a near one after a short gap) or the ``CANDIDATES`` with the least D^2
+(so that, where silences differ in length, the death's own birth after a long one is not
+crowded out by a dozen others after short ones). All deaths and births are then joined at
 once by an optimal assignment: as many candidate pairs as possible (each death and each
 birth used at most once), and among those the least total L; solved by
 `scipy.optimize.linear_sum_assignment` on each connected group of candidates.
@@ -34,6 +36,8 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from scipy.sparse import coo_matrix  # type: ignore[import-untyped]
 from scipy.sparse.csgraph import connected_components  # type: ignore[import-untyped]
 
+from ldm.wire.rotation import MAX_SILENCE
+
 __all__ = [
     "ACCEL",
     "CANDIDATES",
@@ -46,8 +50,9 @@ __all__ = [
     "link",
 ]
 
-MAX_GAP = 25.0  # s: the longest silence (ldm.wire.rotation.MAX_SILENCE, public) and a margin
-CANDIDATES = 12  # births kept per death, the least L: a crowd's unlikely members never win
+MAX_GAP = MAX_SILENCE + 5.0  # s: the longest silence a policy may ask for (public) and a margin
+CANDIDATES = 12  # births kept per death, the least L and the least D^2: a crowd's
+#                  unlikely members never win
 SIGMA_FIX = 2.0  # m: a fix's own noise per axis (the error the receiver shares with the
 #                  next fix, common and bias, cancels in the residual)
 SIGMA_SPEED = 1.0  # m/s: a reported velocity's noise per axis
@@ -55,7 +60,7 @@ ACCEL = 2.0  # m/s^2: the braking and turning the constant-velocity model leaves
 #               car's firm braking); `link` takes others, `laas privacy` tries 0.5 as well
 GATE = 16.25  # chi-square of 4 dof at 99.73 % (3 sigma)
 NO_LINK = 1000.0  # a death or birth left alone: above any gated L (< GATE + the ln terms,
-#                   about 60 at MAX_GAP), so the assignment links all it can first
+#                   about 70 at MAX_GAP), so the assignment links all it can first
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,19 +100,20 @@ def _ends(observations: Sequence[Observation]) -> tuple[list[_End], list[_End]]:
     return [end(o) for o in last.values()], [end(o) for o in first.values()]
 
 
-def _cost(d: _End, b: _End, accel: float) -> float:
-    """L of death d continued into birth b (module docstring), inf outside the gate."""
+def _cost(d: _End, b: _End, accel: float) -> tuple[float, float]:
+    """(D^2, L) of death d continued into birth b (module docstring), L inf outside the
+    gate."""
     dt = b.t - d.t
     if not 0.0 < dt <= MAX_GAP:
-        return math.inf
+        return math.inf, math.inf
     r = b.p - (d.p + d.v * dt)
     w = b.v - d.v
     s_p, s_v = _variances(dt, accel)
     d2 = float(r @ r / s_p + w @ w / s_v)
     if d2 >= GATE:
-        return math.inf
+        return d2, math.inf
     p1, v1 = _variances(1.0, accel)
-    return d2 + 2 * math.log(s_p / p1) + 2 * math.log(s_v / v1)
+    return d2, d2 + 2 * math.log(s_p / p1) + 2 * math.log(s_v / v1)
 
 
 def _variances(dt: float, accel: float) -> tuple[float, float]:
@@ -130,15 +136,17 @@ def link(observations: Sequence[Observation], accel: float = ACCEL) -> dict[str,
     for i, d in enumerate(deaths):
         lo = int(np.searchsorted(birth_t, d.t, side="right"))
         hi = int(np.searchsorted(birth_t, d.t + MAX_GAP, side="right"))
-        near = []
+        near: list[tuple[float, float, int]] = []
         for k in order[lo:hi]:
             b = births[k]
             if b.pseudonym == d.pseudonym:
                 continue
-            c = _cost(d, b, accel)
+            d2, c = _cost(d, b, accel)
             if c < math.inf:
-                near.append((c, k))
-        for c, k in sorted(near)[:CANDIDATES]:
+                near.append((c, d2, k))
+        kept = {k: c for c, _, k in sorted(near)[:CANDIDATES]}
+        kept.update({k: c for c, _, k in sorted(near, key=lambda x: x[1])[:CANDIDATES]})
+        for k, c in kept.items():
             rows.append(i)
             cols.append(k)
             costs.append(c)

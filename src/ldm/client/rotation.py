@@ -71,11 +71,16 @@ class Rotator:
         the policy's silence (unless not `quiet`: a session granted anew, say)."""
         self.changed_at = now
         self.first_use = None
-        self.silent_until = now + self.policy.silence if quiet else -math.inf
+        self.silent_until = now + self._silence() if quiet else -math.inf
         self._travelled = 0.0
         self._need = CITS_MIN_DISTANCE
         self._wait = self._rng.uniform(*CITS_GAP)
         self._still_since = None
+
+    def _silence(self) -> float:
+        """This change's silence: the policy's, or drawn from its range."""
+        lo, hi = self.policy.silence, self.policy.silence_max
+        return lo if hi is None or hi <= lo else self._rng.uniform(lo, hi)
 
     def moved(self, metres: float, speed: float, now: float) -> bool:
         """The application's report: `metres` travelled since its last report, at

@@ -22,9 +22,13 @@ travels in every grant, so all participants of a cluster follow the same one.
 With ``distance`` and ``stop`` the core's ``rotate`` notice after ``period`` remains, a
 backstop for a participant whose application reports no motion. ``silence`` (s) goes with
 any strategy: after each change the participant sends nothing for that long, and its
-application answers itself meanwhile (a positioning client dead-reckons from its last
-answer). The service learns no more under any of them than under ``periodic``: it sees
-fewer inputs (silence), or changes at times it could already see.
+application answers itself meanwhile (a positioning client applies its last answer's
+correction to its own fixes). With ``silence_max`` each silence is drawn anew, uniformly
+between ``silence`` and ``silence_max``, by the participant (from `random.SystemRandom`):
+a new pseudonym's first input then says nothing of which old one went quiet when, even
+where everyone changes at the same moment (``epoch``). The service learns no more under
+any of them than under ``periodic``: it sees fewer inputs (silence), or changes at times
+it could already see.
 
 Every change still obeys the core's rule that a session gets a new key at most once per
 ``rekey_interval``: `ldm.client.rotation.Rotator.may_change` checks it on the
@@ -34,15 +38,18 @@ core's side is `ldm.core.rotation`, the participant's `ldm.client.rotation`.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = ["MAX_SILENCE", "RotationPolicy", "Strategy"]
 
 Strategy = Literal["periodic", "epoch", "distance", "stop"]
 
-MAX_SILENCE = 20.0  # s: below the core's idle_timeout (30 s), which would drop a quiet session
+MAX_SILENCE = 120.0  # s: the longest silence a policy may ask for (the core also keeps it
+#                      at most its rotation period less rekey_interval (3/4 of it) and
+#                      below its idle_timeout, which would drop a quiet session:
+#                      `ldm.config.CoreConfig`)
 
 
 class RotationPolicy(BaseModel):
@@ -53,4 +60,22 @@ class RotationPolicy(BaseModel):
 
     strategy: Strategy = "periodic"
     silence: float = Field(default=0.0, ge=0.0, le=MAX_SILENCE)
-    """Seconds the participant sends nothing after each change of key."""
+    """Seconds the participant sends nothing after each change of key (the shortest, with
+    ``silence_max``)."""
+    silence_max: float | None = Field(default=None, ge=0.0, le=MAX_SILENCE)
+    """The longest silence: each is drawn uniformly from [silence, silence_max]; None: always
+    ``silence``."""
+
+    @model_validator(mode="after")
+    def _check_range(self) -> Self:
+        if self.silence_max is not None and self.silence_max < self.silence:
+            raise ValueError(
+                f"silence_max {self.silence_max:g} s is below silence {self.silence:g} s: "
+                "give the shortest silence as silence and the longest as silence_max"
+            )
+        return self
+
+    @property
+    def longest_silence(self) -> float:
+        """The longest silence a participant may keep after a change (s)."""
+        return self.silence if self.silence_max is None else self.silence_max

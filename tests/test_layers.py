@@ -58,6 +58,17 @@ def test_the_ldm_never_imports_laas() -> None:
     assert _offending("ldm", ("laas",)) == []
 
 
+def test_no_library_module_imports_a_command_line() -> None:
+    """The command lines are thin faces: what both need lives in library modules."""
+    users = [
+        f"{p.relative_to(SRC)} imports {n}"
+        for p in sorted(SRC.rglob("*.py"))
+        for n in sorted(_imports(p))
+        if n in ("ldm.cli", "laas.cli") and p.relative_to(SRC).as_posix() != "ldm/__main__.py"
+    ]
+    assert users == []
+
+
 def test_paho_lives_in_the_transport_package_only() -> None:
     users = [
         str(p.relative_to(SRC))

@@ -17,8 +17,8 @@ from laas.map.bundled import maps_dir
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
-from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.ops.logs import configure
+from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 
 if TYPE_CHECKING:
     from laas.sim.scenario import Scenario
@@ -409,7 +409,7 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
 
 
 def _http_args(p: argparse.ArgumentParser, default: int | None) -> None:
-    """--http and --http-host: the live map (`laas.dashboard`)."""
+    """--http and --http-host: the live map (`laas.worker.dashboard`)."""
     p.add_argument(
         "--http",
         type=int,

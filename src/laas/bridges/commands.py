@@ -17,9 +17,9 @@ from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
 from laas.errors import ConfigError
 from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings
-from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
 from ldm.ops.logs import configure
+from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 
 __all__ = ["add_bridge_commands"]
 

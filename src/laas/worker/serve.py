@@ -62,7 +62,7 @@ def serve_worker(
     metrics: Metrics | None = None,
     say: Callable[[str], None] = _say,
 ) -> WorkerStats:
-    """Serve until `wait` returns (`ldm.cli.wait_for_signal` for a process); the
+    """Serve until `wait` returns (`ldm.ops.process.wait_for_signal` for a process); the
     worker's counters. `metrics`: a registry to show the worker to (its /metrics)."""
     from laas.worker.regions import parse_region, split
 
@@ -106,7 +106,7 @@ def serve_worker(
     live_map = None
     try:
         if options.http_port is not None:
-            from laas.dashboard import DashboardServer
+            from laas.worker.dashboard import DashboardServer
 
             live_map = DashboardServer(
                 service, provider, host=options.http_host, port=options.http_port

@@ -114,7 +114,8 @@ def _serve(bridge: Any, what: str, a: argparse.Namespace) -> int:
         s = bridge.pool.stats
         print(
             f"laas {what}: stopped; {s.opened} devices opened, {s.answered} answered, "
-            f"{s.refused} refused, {s.lost} lost, {s.malformed} malformed",
+            f"{s.refused} refused, {s.lost} lost, {s.malformed} malformed, "
+            f"{s.stale} not newer than their device's last (dropped)",
             file=sys.stderr,
             flush=True,
         )
@@ -182,7 +183,8 @@ def _cmd_gpsd(a: argparse.Namespace) -> int:
         s = pool.stats
         print(
             f"laas gpsd: {sent} fixes sent, {s.answered} answered, {s.refused} refused, "
-            f"{s.lost} lost, {s.malformed} malformed",
+            f"{s.lost} lost, {s.malformed} malformed, {s.stale} not newer than the last "
+            "(dropped)",
             file=sys.stderr,
         )
         if sent == 0:

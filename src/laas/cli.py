@@ -47,7 +47,7 @@ def _engine_config(a: argparse.Namespace) -> EngineConfig:
 
 def _cmd_replay(a: argparse.Namespace) -> int:
     from laas.sim.replay import replay
-    from laas.sim.trace import format_answer, read_trace
+    from laas.sim.trace import format_answer, is_live, live_lines, read_trace
 
     hdmap = HdMap.load(a.map)
     errors = 0
@@ -59,11 +59,15 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
     source = sys.stdin if a.trace == "-" else open(a.trace, encoding="utf-8")  # noqa: SIM115
     out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
+    live = source is sys.stdin and is_live(source.fileno())  # a pipe: answer what is ready
     answered = 0
     try:
         name = "<stdin>" if a.trace == "-" else a.trace
-        for result in replay(hdmap, read_trace(source, name), _engine_config(a), on_error):
+        lines = read_trace(live_lines(source.fileno()) if live else source, name)
+        for result in replay(hdmap, lines, _engine_config(a), on_error):
             out.write(format_answer(result.user, result.answer) + "\n")
+            if live:
+                out.flush()
             answered += 1
     finally:
         if source is not sys.stdin:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -102,7 +103,12 @@ def test_replay_on_a_pipe_answers_each_epoch_before_the_next_is_written(
     )
     assert child.stdin is not None and child.stdout is not None
     answers: queue.Queue[str] = queue.Queue()
-    reader = threading.Thread(target=lambda: [answers.put(x) for x in child.stdout], daemon=True)
+
+    def read(stream: IO[str]) -> None:
+        for line in stream:
+            answers.put(line)
+
+    reader = threading.Thread(target=read, args=(child.stdout,), daemon=True)
     reader.start()
     got: list[str] = []
     try:

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
 from laas.map.bundled import maps_dir
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
@@ -49,7 +50,7 @@ def _cmd_replay(a: argparse.Namespace) -> int:
     from laas.sim.replay import replay
     from laas.sim.trace import format_answer, is_live, live_lines, read_trace
 
-    hdmap = HdMap.load(a.map)
+    hdmap = read_geojson_file(a.map)
     errors = 0
 
     def on_error(error: TraceError) -> None:
@@ -85,10 +86,10 @@ def _scenario(a: argparse.Namespace) -> tuple[Scenario, HdMap]:
     if a.map is not None:
         from laas.sim.roam import roam_scenario
 
-        hdmap = HdMap.load(a.map)
+        hdmap = read_geojson_file(a.map)
         return roam_scenario(hdmap, a.seed, users=a.users, duration=a.duration), hdmap
     scenario = get_scenario(a.scenario)
-    return scenario, HdMap.load(scenario.map)
+    return scenario, read_geojson_file(scenario.map)
 
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
@@ -123,7 +124,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
         print(f"scenario {scenario.name}: {a.runs} seeded runs per row (seeds 0..{a.runs - 1})")
         print(format_table(rows))
     if a.plot:
-        hdmap = HdMap.load(scenario.map)
+        hdmap = read_geojson_file(scenario.map)
         _plots(scenario, hdmap, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
     return 0
 
@@ -510,7 +511,7 @@ def _cmd_map_info(a: argparse.Namespace) -> int:
 def _cmd_map_show(a: argparse.Namespace) -> int:
     from laas.sim.plots import render_map
 
-    print(f"laas map show: wrote {render_map(HdMap.load(a.map), a.out, ids=a.ids)}")
+    print(f"laas map show: wrote {render_map(read_geojson_file(a.map), a.out, ids=a.ids)}")
     return 0
 
 

@@ -134,12 +134,12 @@ def _cmd_owntracks(a: argparse.Namespace) -> int:
 
 def _cmd_cam(a: argparse.Namespace) -> int:
     from laas.bridges.cam import CamBridge, CamConfig
-    from laas.map.hdmap import HdMap
+    from laas.map.geojson import read_geojson_file
 
     _logging(a)
     own = _own_broker(a)
     config = build(CamConfig, topic_filter=a.topic, answer_topic=a.answer_topic, prefix=a.prefix)
-    return _serve(CamBridge(own, _pool(a, own), HdMap.load(a.map), config), "cam", a)
+    return _serve(CamBridge(own, _pool(a, own), read_geojson_file(a.map), config), "cam", a)
 
 
 def _print_answer(answer: Answer) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson_file
 from laas.progress import progress_printer
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.participants import run_participants
@@ -50,7 +50,7 @@ def run_demo(
     on `http_host`:`http_port` (0: a free port) while the road users run, and with
     `metrics_port` the cores' and the worker's metrics (/metrics, /healthz, /readyz)."""
     scenario = hamburg_scenario()
-    hdmap = HdMap.load(scenario.map)
+    hdmap = read_geojson_file(scenario.map)
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
     errors = trace.errors
     config = EngineConfig(sigma_pos=sigma_pos, sigma_vel=sigma_vel, sigma_heading=0.05)

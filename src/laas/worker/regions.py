@@ -6,7 +6,7 @@ width. Each worker serves the `laas` family as a service of its own name
 each neighbour (and by ``margin`` outwards, so fixes just off the map still find a
 worker), as a polygon of longitude and latitude. A participant sends each fix to the
 worker whose coverage holds it and stays with that worker while it is inside
-(`ldm.routing.RoutedSession`): so a road user crossing a border is handed over once
+(`ldm.client.routing.RoutedSession`): so a road user crossing a border is handed over once
 it is ``overlap`` metres past it, and the new worker has been estimating the common
 error of that side from its own users all along.
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson_file
 from laas.worker.service import SERVICE_NAME, WorkerConfig, WorkerStats, start_worker
 from ldm import BrokerSettings
 from ldm.ops.metrics import Metrics
@@ -66,7 +66,7 @@ def serve_worker(
     worker's counters. `metrics`: a registry to show the worker to (its /metrics)."""
     from laas.worker.regions import parse_region, split
 
-    hdmap = HdMap.load(options.map)
+    hdmap = read_geojson_file(options.map)
     region = None
     if options.region is not None:
         k, count = parse_region(options.region)

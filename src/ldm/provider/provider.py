@@ -183,11 +183,11 @@ class Provider(Worker[Event]):
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self.hops: Hops | None = None
-        """Set to note when each input passes this provider (`ldm.hops`; `laas bench`)."""
+        """Set to note when each input passes this provider (`ldm.ops.hops`; `laas bench`)."""
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each input opened (``open``), each reply sealed
         (``seal``) and each turn of the handler (``step``); None: not timed
-        (`ldm.metrics.Metrics.watch_provider` sets it)."""
+        (`ldm.ops.metrics.Metrics.watch_provider` sets it)."""
         self._arrived: dict[int, float] = {}  # id(message) -> arrival, while hops are noted
         self._handler = handler
         self._batch_handler = batch_handler

@@ -48,6 +48,6 @@ def hamburg_map():  # -> HdMap (imported here, so this stays an append to the fi
     """The bundled Hamburg map (`maps/messe-hamburg.geojson`), loaded once per session;
     found by `bundled_map`, so it does not depend on the current directory."""
     from laas.map.bundled import bundled_map
-    from laas.map.hdmap import HdMap
+    from laas.map.geojson import read_geojson_file
 
-    return HdMap.load(bundled_map("messe-hamburg"))
+    return read_geojson_file(bundled_map("messe-hamburg"))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from laas.map.geojson import read_geojson
 from laas.map.hdmap import HdMap, Segment
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.models import GpsMeasurement
@@ -33,7 +34,7 @@ def small_map_data(
 
 def small_map(**kwargs: Any) -> HdMap:
     """The map of `small_map_data`, loaded."""
-    return HdMap.from_geojson(small_map_data(**kwargs), source="small-map")
+    return read_geojson(small_map_data(**kwargs), source="small-map")
 
 
 def fix_on(

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from laas.config import EngineConfig
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.sim.family import MAP_FAMILIES, build_case
@@ -46,7 +47,7 @@ def cases() -> list[Case]:
     out: list[Case] = []
     for name, make in SCENARIOS.items():
         scenario = make()
-        hdmap = HdMap.load(Path(__file__).parents[1] / "maps" / f"{name}.geojson")
+        hdmap = read_geojson_file(Path(__file__).parents[1] / "maps" / f"{name}.geojson")
         trace = simulate_with(hdmap, scenario, 0, sigma_pos=1.0, sigma_vel=0.25)
         for mode in ("default", "paper"):
             out.append(Case(f"{name}/{mode}", hdmap, trace, EngineConfig(mode=mode)))

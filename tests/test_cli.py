@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import queue
 import subprocess
 import sys
+import threading
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -73,6 +76,55 @@ def test_replay_reads_stdin_in_a_real_process(files: tuple[Path, Path]) -> None:
         check=True,
     )
     assert len(done.stdout.splitlines()) == 10
+
+
+def test_replay_on_a_pipe_answers_each_epoch_before_the_next_is_written(
+    files: tuple[Path, Path],
+) -> None:
+    """From a live pipe, a batch is answered once no further line is ready: the answers
+    to one epoch come before the next epoch's lines are written, and they are the
+    answers of the same trace read from a file."""
+    map_path, trace_path = files
+    lines = [
+        line
+        for line in trace_path.read_text().splitlines()
+        if line.startswith("{") and '"soon"' not in line
+    ]
+    lines = list(dict.fromkeys(lines))  # the good lines once: two users, five epochs
+    epochs = [lines[i : i + 2] for i in range(0, len(lines), 2)]
+    offline = tmp = trace_path.with_name("good.jsonl")
+    tmp.write_text("\n".join(lines) + "\n")
+    command = [sys.executable, "-m", "laas.cli", "replay", "--map", str(map_path)]
+    expected = subprocess.run(
+        [*command, str(offline)], capture_output=True, text=True, timeout=120, check=True
+    ).stdout.splitlines()
+    child = subprocess.Popen(
+        [*command, "-"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    assert child.stdin is not None and child.stdout is not None
+    answers: queue.Queue[str] = queue.Queue()
+
+    def read(stream: IO[str]) -> None:
+        for line in stream:
+            answers.put(line)
+
+    reader = threading.Thread(target=read, args=(child.stdout,), daemon=True)
+    reader.start()
+    got: list[str] = []
+    try:
+        for epoch in epochs:
+            child.stdin.write("\n".join(epoch) + "\n")
+            child.stdin.flush()
+            for _ in epoch:  # the map loads before the first answer: allow for it
+                got.append(answers.get(timeout=60).rstrip("\n"))
+        child.stdin.close()
+        assert child.wait(timeout=60) == 0
+    finally:
+        child.kill()
+        child.wait()
+    reader.join(5)
+    assert answers.empty()
+    assert got == expected and len(got) == 10
 
 
 def test_a_broken_map_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

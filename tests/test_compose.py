@@ -817,7 +817,7 @@ def test_compose_bridges_serve_cam_stations_and_phones_under_the_shipped_acl(
     gets its lane; each bridge logs its devices in as their own accounts. A CAM dated
     20 minutes back is refused for its clock, and the worker's stop summary says so."""
     from laas.map.bundled import bundled_map
-    from laas.map.hdmap import HdMap
+    from laas.map.geojson import read_geojson_file
     from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
     from ldm import BrokerSettings
     from ldm.transport import Event, Message, Transport
@@ -856,7 +856,7 @@ def test_compose_bridges_serve_cam_stations_and_phones_under_the_shipped_acl(
         t.start(timeout=5)
         return t
 
-    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    hdmap = read_geojson_file(bundled_map("messe-hamburg"))
     trace = simulate(hdmap, hamburg_scenario(), ErrorModel(), 0)
     car = now_shifted([f.measurement for f in trace.fixes if f.user == "car"][:20], 20.0)
     car_station = connect(station, "laas/cam/#")  # the ACL lets it read laas/cam/its-car-1

@@ -1,4 +1,4 @@
-"""The live map (`laas.dashboard`): its endpoints on a running `laas worker --http 0`,
+"""The live map (`laas.worker.dashboard`): its endpoints on a running `laas worker --http 0`,
 its event stream under a slow page, and the page itself in a real headless Chromium.
 
 The browser test needs Debian's ``chromium`` and ``chromium-driver`` and the `selenium`
@@ -25,12 +25,12 @@ import pytest
 import shapely
 
 from laas.config import EngineConfig
-from laas.dashboard import DashboardServer
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import LiveRun, run_participants
 from laas.sim.scenario import Trace, hamburg_scenario, simulate
+from laas.worker.dashboard import DashboardServer
 from ldm import Core, Participant
 from ldm.local.brokers import RunningBroker
 

@@ -7,6 +7,7 @@ import pytest
 
 from laas.config import EngineConfig, Mode
 from laas.engine.engine import Engine
+from laas.map.geojson import read_geojson
 from laas.map.hdmap import HdMap
 from laas.map.mapgen import LaneSpec, local_to_lonlat, road_features
 from laas.models import GpsMeasurement
@@ -128,7 +129,7 @@ def test_a_fast_car_is_not_placed_on_a_footway_beside_its_road() -> None:
         local_to_lonlat([(0.0, -10.0), (300.0, -10.0)], *origin),
         (LaneSpec("sidewalk", 2.0, "both"),),
     )
-    hdmap = HdMap.from_geojson(
+    hdmap = read_geojson(
         {"type": "FeatureCollection", "features": road["features"] + foot["features"]}
     )
     lane = hdmap.segments["road-0"]

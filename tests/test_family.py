@@ -16,6 +16,7 @@ import pytest
 
 from laas.cli import main
 from laas.config import EngineConfig
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.sim.family import FAMILIES, FamilyCase, Road, build_case, get_family
 from laas.sim.scenario import (
@@ -101,7 +102,7 @@ def test_unknown_family_and_negative_seed_are_refused() -> None:
 def test_generated_maps_load_and_chain_their_elements(cases: list[FamilyCase]) -> None:
     zones, hemispheres = set(), set()
     for case in cases:
-        again = HdMap.from_geojson(case.geojson)  # the reader validates every lane
+        again = read_geojson(case.geojson)  # the reader validates every lane
         assert set(again.segments) == set(case.scenario.route)
         route = case.scenario.route
         for here, there in itertools.pairwise(route):
@@ -264,7 +265,7 @@ def test_stopped_and_parked_users_stand_still() -> None:
     )
     parked = UserPlan(user="p", kind="car", speed=0.0, start=100.0, lanes=((0.0, 2),))
     base = hamburg_scenario()
-    hdmap = HdMap.load(base.map)
+    hdmap = read_geojson_file(base.map)
     scenario = base.model_copy(update={"users": (plan, parked), "duration": 60.0})
     errors = ErrorModel(bias_east=0.0, bias_north=0.0, sigma_pos=0.0, sigma_vel=0.0)
     trace = simulate(hdmap, scenario, errors, 0)
@@ -308,7 +309,7 @@ def test_new_error_features_do_what_they_say() -> None:
 
 def test_heading_noise_grows_as_speed_falls() -> None:
     base = hamburg_scenario()
-    hdmap = HdMap.load(base.map)
+    hdmap = read_geojson_file(base.map)
     slow = UserPlan(user="slow", kind="pedestrian", speed=1.0, start=30.0, lanes=((0.0, 3),))
     fast = UserPlan(user="fast", kind="car", speed=10.0, start=100.0, lanes=((0.0, 0),))
     scenario = base.model_copy(update={"users": (slow, fast), "duration": 40.0})
@@ -328,7 +329,7 @@ def test_heading_noise_grows_as_speed_falls() -> None:
 
 def test_the_builtin_scenarios_use_none_of_the_new_features() -> None:
     scenario = hamburg_scenario()
-    hdmap = HdMap.load(scenario.map)
+    hdmap = read_geojson_file(scenario.map)
     trace = simulate_with(hdmap, scenario, 0, sigma_pos=1.0, sigma_vel=0.25)
     assert len(trace.fixes) == 303
     assert all(f.measurement.accuracy is None for f in trace.fixes)

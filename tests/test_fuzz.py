@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from laas.errors import MapError, TraceError
+from laas.map.geojson import read_geojson
 from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
 from laas.service import LaasService
@@ -582,4 +583,4 @@ def test_trace_reader_reports_every_bad_line(lines: list[str]) -> None:
 @given(doc=odd_values | mutations({"type": "FeatureCollection", "features": []}))
 def test_map_loader_raises_only_map_errors(doc: Any) -> None:
     with contextlib.suppress(MapError):
-        HdMap.from_geojson(doc)
+        read_geojson(doc)

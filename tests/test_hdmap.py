@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from laas.errors import MapError
 from laas.map.bundled import bundled_map
 from laas.map.frame import Frame
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap, Segment
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 
@@ -261,7 +262,7 @@ def sydney() -> HdMap:
     data = road_features(
         "george", ref, lanes, split_at=(80.0, 80.0 + 40.0 * math.radians(50)), reference_is="center"
     )
-    return HdMap.from_geojson(data, source="sydney")
+    return read_geojson(data, source="sydney")
 
 
 def test_another_place_loads_and_works(sydney: HdMap) -> None:
@@ -297,7 +298,7 @@ def _base() -> dict[str, Any]:
 
 
 def test_base_map_is_valid() -> None:
-    m = HdMap.from_geojson(_base())
+    m = read_geojson(_base())
     assert list(m.segments) == ["r-0", "r-1"]
 
 
@@ -457,7 +458,7 @@ def test_broken_maps_are_rejected(mutate: Mutation, expected: list[str]) -> None
     if replaced is not None:
         data = replaced
     with pytest.raises(MapError) as info:
-        HdMap.from_geojson(data, source="broken.geojson")
+        read_geojson(data, source="broken.geojson")
     message = str(info.value)
     assert message.startswith("broken.geojson: ")
     for part in expected:
@@ -468,18 +469,18 @@ def test_invalid_json_names_the_file(tmp_path: Path) -> None:
     path = tmp_path / "bad.geojson"
     path.write_text('{"type": "FeatureCollection",\n "features": [}', encoding="utf-8")
     with pytest.raises(MapError, match=r"bad\.geojson: invalid JSON at line 2"):
-        HdMap.load(path)
+        read_geojson_file(path)
 
 
 def test_missing_file_is_a_map_error(tmp_path: Path) -> None:
     with pytest.raises(MapError, match="cannot read"):
-        HdMap.load(tmp_path / "nope.geojson")
+        read_geojson_file(tmp_path / "nope.geojson")
 
 
 def test_load_from_file_equals_from_geojson(tmp_path: Path) -> None:
     path = tmp_path / "r.geojson"
     path.write_text(json.dumps(_base()), encoding="utf-8")
-    m = HdMap.load(str(path))
+    m = read_geojson_file(str(path))
     assert m.source == str(path)
     assert list(m.segments) == ["r-0", "r-1"]
     assert m.segments["r-0"].successors == ("r-1",)
@@ -504,7 +505,7 @@ def test_fuzzed_properties_raise_only_map_errors(key: str, value: Any, feature: 
     data = _base()
     data["features"][feature]["properties"][key] = value
     try:
-        HdMap.from_geojson(data)
+        read_geojson(data)
     except MapError as exc:
         assert f"feature {feature}" in str(exc) or "segment" in str(exc)
 
@@ -529,7 +530,7 @@ def test_fuzzed_structure_raises_only_map_errors(value: Any, where: str) -> None
     else:
         data["features"][3]["geometry"]["coordinates"][1] = value
     with contextlib.suppress(MapError):
-        HdMap.from_geojson(data)
+        read_geojson(data)
 
 
 def test_segment_rejects_gaps_in_lane_indices(hamburg_map: HdMap) -> None:

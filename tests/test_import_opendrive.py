@@ -2,7 +2,7 @@
 hand-made inputs, one per geometry type and lane case.
 
 Every geometry check compares the imported lane centres, read back from the written
-GeoJSON with ``HdMap.load``, against an evaluation of the reference line made here
+GeoJSON with ``read_geojson_file``, against an evaluation of the reference line made here
 independently of the importer: closed forms for line and arc, numerical integration of
 the heading (``scipy.integrate.quad``) for spirals, and root finding on the integrated
 arc length for poly3 and paramPoly3. The parameters are copied from the .xodr files.
@@ -25,6 +25,7 @@ from scipy.optimize import brentq  # type: ignore[import-untyped]
 from shapely import LineString
 
 from laas.errors import MapError
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.map.importers import import_map
 from laas.map.importers.opendrive import MIN_WIDTH, WIDTH_RANGE, import_opendrive
@@ -176,7 +177,7 @@ def import_and_load(tmp_path: Path, name: str, origin: tuple[float, float] | Non
     result = import_opendrive(DATA / name, origin=origin)
     out = tmp_path / (Path(name).stem + ".geojson")
     result.write(out)
-    return result, HdMap.load(out)  # strict
+    return result, read_geojson_file(out)  # strict
 
 
 def local_lines(hdmap: HdMap, road: str, lane: int) -> list[LineString]:
@@ -241,7 +242,7 @@ def test_samples_import(tmp_path, name, origin, segments, lanes, skipped):
     assert dict(result.report.skipped) == skipped
     out = tmp_path / f"{name}.geojson"
     result.write(out)
-    hdmap = HdMap.load(out)
+    hdmap = read_geojson_file(out)
     assert len(hdmap.segments) == segments
     assert sum(len(s.lanes) for s in hdmap.segments.values()) == lanes
 

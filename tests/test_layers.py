@@ -58,6 +58,54 @@ def test_the_ldm_never_imports_laas() -> None:
     assert _offending("ldm", ("laas",)) == []
 
 
+def test_no_library_module_imports_a_command_line() -> None:
+    """The command lines are thin faces: what both need lives in library modules."""
+    users = [
+        f"{p.relative_to(SRC)} imports {n}"
+        for p in sorted(SRC.rglob("*.py"))
+        for n in sorted(_imports(p))
+        if n in ("ldm.cli", "laas.cli") and p.relative_to(SRC).as_posix() != "ldm/__main__.py"
+    ]
+    assert users == []
+
+
+def _module(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_modules_import_each_other() -> None:
+    """No import circle, lazy imports included: a module that needs another's reader or
+    subclasses is not needed by it (an import inside a function hides a circle, it does
+    not open it)."""
+    modules = {_module(p): p for p in SRC.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                for alias in node.names:
+                    full = f"{node.module}.{alias.name}"
+                    found.add(full if full in modules else node.module)
+            elif isinstance(node, ast.Import):
+                found.update(alias.name for alias in node.names)
+        graph[name] = {m for m in found if m in modules and m != name}
+
+    def reaches(start: str, goal: str) -> bool:
+        seen, todo = set(), [start]
+        while todo:
+            here = todo.pop()
+            if here == goal:
+                return True
+            if here not in seen:
+                seen.add(here)
+                todo.extend(graph[here])
+        return False
+
+    circles = sorted(f"{a} <-> {b}" for a in graph for b in graph[a] if a < b and reaches(b, a))
+    assert circles == []
+
+
 def test_paho_lives_in_the_transport_package_only() -> None:
     users = [
         str(p.relative_to(SRC))

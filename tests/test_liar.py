@@ -22,6 +22,7 @@ import pytest
 from laas import EngineConfig, HdMap
 from laas.config import LIAR_EVIDENCE_CAP
 from laas.engine.common_error import CommonError
+from laas.map.geojson import read_geojson
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.family import build_case
 from laas.sim.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
@@ -81,7 +82,7 @@ def road() -> HdMap:
         LANES,
         split_at=(250.0, 500.0, 500.0 + curve),
     )
-    return HdMap.from_geojson(data, source="lyon")
+    return read_geojson(data, source="lyon")
 
 
 def _scenario(road: HdMap) -> Scenario:

@@ -7,6 +7,7 @@ import pytest
 from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
@@ -71,7 +72,7 @@ def test_a_worker_process_needs_a_map_file() -> None:
 def test_the_live_worker_answers_on_imported_maps(name: str) -> None:
     """Users roaming a map imported from Lanelet2 (Karlsruhe) or OpenDRIVE (fabriksgatan),
     through the three-broker deployment, answered as offline replay answers them."""
-    hdmap = HdMap.load(bundled_map(name))
+    hdmap = read_geojson_file(bundled_map(name))
     errors = ErrorModel(bias_east=1.0, bias_north=-1.5, sigma_pos=1.0, sigma_vel=0.25)
     scenario = roam_scenario(hdmap, seed=2, users=6, duration=30.0, errors=errors)
     trace = simulate(hdmap, scenario, scenario.errors, seed=2)

@@ -18,6 +18,7 @@ import shapely
 from laas.errors import MapError
 from laas.map.bundled import bundled_map
 from laas.map.frame import MIN_PIECE, Frame, FrameStack, _runs_cumsum, dedupe, sharpest_turn
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap, Segment, prepare
 
 MAPS = ["messe-hamburg", "melbourne-corner", "fabriksgatan", "karlsruhe", "helsinki"]
@@ -26,7 +27,7 @@ FloatArray = np.ndarray
 
 @cache
 def _map(name: str) -> HdMap:
-    return HdMap.load(bundled_map(name))
+    return read_geojson_file(bundled_map(name))
 
 
 def _frame_alone(coords: FloatArray) -> dict[str, FloatArray | bool]:

@@ -9,6 +9,7 @@ import pytest
 from shapely import Point
 
 from laas.map.bundled import bundled_map
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap, Segment
 
 MAPS = ["messe-hamburg", "fabriksgatan", "karlsruhe", "helsinki"]
@@ -16,7 +17,7 @@ MAPS = ["messe-hamburg", "fabriksgatan", "karlsruhe", "helsinki"]
 
 @cache
 def _map(name: str) -> HdMap:
-    return HdMap.load(bundled_map(name))
+    return read_geojson_file(bundled_map(name))
 
 
 def _points(hdmap: HdMap, n: int, seed: int) -> np.ndarray:

@@ -16,7 +16,7 @@ from laas.cli import main
 from laas.errors import MapError
 from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
-from laas.map.geojson import read_geojson
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.map.importers.common import ImportReport, LaneDraft, finish, write_map
 from laas.map.summary import summarise
@@ -31,7 +31,7 @@ def test_info_counts_what_the_map_holds(capsys: pytest.CaptureFixture[str]) -> N
     path = bundled_map("messe-hamburg")
     assert main(["map", "info", str(path), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    hdmap = HdMap.load(path)
+    hdmap = read_geojson_file(path)
     assert info["segments"] == len(hdmap.segments) == 5
     assert sum(info["lanes"].values()) == sum(len(s.lanes) for s in hdmap.segments.values())
     lengths = sum(lane.centerline.length for seg in hdmap.segments.values() for lane in seg.lanes)
@@ -89,7 +89,7 @@ def _drafts(hdmap: HdMap) -> list[LaneDraft]:
 def test_finish_reports_a_refused_element_by_its_source_and_writes_only_the_rest(
     tmp_path: Path,
 ) -> None:
-    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    hdmap = read_geojson_file(bundled_map("messe-hamburg"))
     drafts = _drafts(hdmap)
     for draft in drafts:  # messe-2's lane 1 drawn 20 m east: not beside lane 0
         if draft.segment == "messe-2" and draft.index == 1:
@@ -102,7 +102,7 @@ def test_finish_reports_a_refused_element_by_its_source_and_writes_only_the_rest
     assert example.startswith("element messe-2: ") and "(segment 'messe-2', lane 1)" in example
     out = tmp_path / "map.geojson"
     result.write(out)
-    again = HdMap.load(out)
+    again = read_geojson_file(out)
     assert set(again.segments) == set(result.hdmap.segments)
     assert again.segments["messe-1"].successors == ()
     assert report.lanes == sum(len(s.lanes) for s in again.segments.values())
@@ -189,7 +189,7 @@ def test_what_the_lenient_load_keeps_loads_strictly_as_it_stands(
     """The claim `finish` rests on (so an import loads its map once, and writes it without
     a second load): for every kind of fault, the elements the lenient load keeps, with the
     successors that name left-out elements dropped, load strictly to the same map."""
-    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    hdmap = read_geojson_file(bundled_map("messe-hamburg"))
     proj = hdmap.projection
     drafts: list[LaneDraft] = []
     for name, fault in FAULTS.items():
@@ -223,7 +223,7 @@ def test_what_the_lenient_load_keeps_loads_strictly_as_it_stands(
     assert result.hdmap.segments[drafts[0].segment].successors == (drafts[0].successors[0],)
     strict = read_geojson(json.loads(result.text or ""), source="strict")
     _same_map(strict, result.hdmap)
-    _same_map(HdMap.load(out), result.hdmap)
+    _same_map(read_geojson_file(out), result.hdmap)
     assert out.read_text() == result.text
 
 
@@ -255,11 +255,11 @@ def test_a_rejected_element_does_not_choose_the_projection() -> None:
 def test_a_changed_import_result_is_not_what_is_written(tmp_path: Path) -> None:
     """`write` writes what was loaded; a FeatureCollection changed afterwards goes through
     `write_map`, which loads it strictly."""
-    result = finish(_drafts(HdMap.load(bundled_map("messe-hamburg"))), ImportReport("test"))
+    result = finish(_drafts(read_geojson_file(bundled_map("messe-hamburg"))), ImportReport("test"))
     result.geojson["features"][0]["properties"]["width"] = -1
     out = tmp_path / "map.geojson"
     result.write(out)
-    assert len(HdMap.load(out).segments) == 5
+    assert len(read_geojson_file(out).segments) == 5
     with pytest.raises(MapError, match="width"):
         write_map(result.geojson, out)
 
@@ -276,7 +276,7 @@ def test_a_map_the_loader_refuses_is_never_written_and_the_old_file_stays(
     assert out.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["map.geojson"]  # no temporary file left
     write_map(_hamburg(), out)
-    assert len(HdMap.load(out).segments) == 5
+    assert len(read_geojson_file(out).segments) == 5
 
 
 def test_import_options_are_checked_before_any_work(capsys: pytest.CaptureFixture[str]) -> None:
@@ -295,7 +295,7 @@ def test_users_roaming_a_map_are_written_and_replayed(tmp_path: Path) -> None:
     fixes = (out / "trace.jsonl").read_text().splitlines()
     truth = [json.loads(line) for line in (out / "truth.jsonl").read_text().splitlines()]
     assert len(fixes) == len(truth) > 30
-    assert {row["segment"] for row in truth} <= set(HdMap.load(lane_map).segments)
+    assert {row["segment"] for row in truth} <= set(read_geojson_file(lane_map).segments)
     answers = tmp_path / "answers.jsonl"
     trace = str(out / "trace.jsonl")
     assert main(["replay", "--map", lane_map, trace, "--out", str(answers)]) == 0

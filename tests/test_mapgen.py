@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from laas.map.geo import UtmProjection
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson
 from laas.map.mapgen import (
     Curve,
     LaneSpec,
@@ -103,7 +103,7 @@ def test_road_features_layout() -> None:
     for f in feats:  # rounded to 8 decimals
         for lon, lat in f["geometry"]["coordinates"]:
             assert round(lon, 8) == lon and round(lat, 8) == lat
-    m = HdMap.from_geojson(data)
+    m = read_geojson(data)
     assert [s.id for s in m.segments.values()] == ["p-0", "p-1", "p-2"]
     assert m.segments["p-0"].length == pytest.approx(25.0, abs=0.01)
     for seg in m.segments.values():
@@ -111,8 +111,8 @@ def test_road_features_layout() -> None:
 
 
 def test_reference_is_center() -> None:
-    left = HdMap.from_geojson(_road())
-    center = HdMap.from_geojson(_road(reference_is="center"))
+    left = read_geojson(_road())
+    center = read_geojson(_road(reference_is="center"))
     a, b = left.segments["p-0"], center.segments["p-0"]
     # the whole road moves left by half its width (7.5 / 2); offsets between lanes stay
     np.testing.assert_allclose(a.lane_offsets(10.0), b.lane_offsets(10.0), atol=0.005)
@@ -157,7 +157,7 @@ def test_utm_variant_and_merge() -> None:
         "b", [(x0 + 100.0, y0), (x0 + 100.0, y0 - 80.0)], proj, [LaneSpec("driving", 3.5)]
     )
     a["features"][0]["properties"]["successors"] = ["b-0"]
-    m = HdMap.from_geojson(feature_collection(a, b))
+    m = read_geojson(feature_collection(a, b))
     assert list(m.segments) == ["a-0", "b-0"]
     assert m.segments["a-0"].successors == ("b-0",)
     assert m.segments["a-0"].heading(1.0) == pytest.approx(90.0, abs=0.01)
@@ -182,7 +182,7 @@ def test_generated_maps_load_anywhere(
     data = road_features(
         "g", local_to_lonlat(local, lon, lat), lanes, split_at=(60.0, 60.0 + curve)
     )
-    m = HdMap.from_geojson(data)
+    m = read_geojson(data)
     expected = np.concatenate(([0.0], np.cumsum((np.array(widths[:-1]) + widths[1:]) / 2)))
     for seg in m.segments.values():
         np.testing.assert_allclose(seg.lane_offsets(seg.length / 2), expected, atol=0.01)

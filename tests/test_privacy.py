@@ -6,7 +6,7 @@ import math
 
 from laas.deadreckon import dead_reckon
 from laas.map.bundled import bundled_map
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson_file
 from laas.models import CorrectedPosition, GpsMeasurement
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
@@ -132,7 +132,7 @@ def test_a_silent_participant_with_the_map_follows_its_lane_through_junctions() 
 def test_live_participants_keep_quiet_and_answer_themselves() -> None:
     """The Hamburg users through the three-broker deployment under epochs with silence:
     every fix answered (the silent ones by the participant itself), no key refused."""
-    hdmap = HdMap.load(bundled_map("messe-hamburg"))
+    hdmap = read_geojson_file(bundled_map("messe-hamburg"))
     scenario = get_scenario("messe-hamburg")
     trace = simulate(hdmap, scenario, scenario.errors, 0)
     policy = RotationPolicy(strategy="epoch", silence=0.3, silence_max=0.8)

@@ -16,6 +16,7 @@ from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.map.mapgen import (
     Curve,
@@ -60,14 +61,14 @@ def junction_map() -> HdMap:
     for feature in fc["features"]:
         if feature["properties"]["segment"] == "a-1":
             feature["properties"]["successors"] = ["b-0", "c-0"]
-    return HdMap.from_geojson(fc, source="junction")
+    return read_geojson(fc, source="junction")
 
 
 @pytest.fixture(scope="module")
 def maps(hamburg_map: HdMap) -> dict[str, HdMap]:
     return {
         "hamburg": hamburg_map,
-        "melbourne": HdMap.load(bundled_map("melbourne-corner")),
+        "melbourne": read_geojson_file(bundled_map("melbourne-corner")),
         "junction": junction_map(),
     }
 
@@ -174,7 +175,7 @@ def test_roaming_is_seeded(maps: dict[str, HdMap]) -> None:
 def test_a_map_with_no_lane_to_roam_is_refused() -> None:
     local = track((0.0, 0.0), 0.0, [Straight(100.0)])
     lanes = [LaneSpec("parking", 2.2)]
-    hdmap = HdMap.from_geojson(road_features("p", local_to_lonlat(local, *ORIGIN), lanes))
+    hdmap = read_geojson(road_features("p", local_to_lonlat(local, *ORIGIN), lanes))
     with pytest.raises(ConfigError, match="no driving, bicycle or sidewalk lane"):
         roam_scenario(hdmap, 0)
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from laas import EngineConfig, HdMap
+from laas.map.geojson import read_geojson
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.scenario import ErrorModel, Scenario, UserPlan, simulate
 from laas.sim.score import answer_trace
@@ -61,7 +62,7 @@ def road() -> HdMap:
     data = road_features(
         "toronto", local_to_lonlat(local, -79.38, 43.65), LANES, split_at=(700.0, 700.0 + curve)
     )
-    return HdMap.from_geojson(data, source="toronto")
+    return read_geojson(data, source="toronto")
 
 
 def _lane_accuracy(road: HdMap, seed: int) -> float:

@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING, Any
 from laas.config import EngineConfig, Mode
 from laas.errors import ConfigError, LaasError, TraceError
 from laas.map.bundled import maps_dir
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
-from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.ops.logs import configure
+from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 
 if TYPE_CHECKING:
     from laas.sim.scenario import Scenario
@@ -47,9 +48,9 @@ def _engine_config(a: argparse.Namespace) -> EngineConfig:
 
 def _cmd_replay(a: argparse.Namespace) -> int:
     from laas.sim.replay import replay
-    from laas.sim.trace import format_answer, read_trace
+    from laas.sim.trace import format_answer, is_live, live_lines, read_trace
 
-    hdmap = HdMap.load(a.map)
+    hdmap = read_geojson_file(a.map)
     errors = 0
 
     def on_error(error: TraceError) -> None:
@@ -59,11 +60,15 @@ def _cmd_replay(a: argparse.Namespace) -> int:
 
     source = sys.stdin if a.trace == "-" else open(a.trace, encoding="utf-8")  # noqa: SIM115
     out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
+    live = source is sys.stdin and is_live(source.fileno())  # a pipe: answer what is ready
     answered = 0
     try:
         name = "<stdin>" if a.trace == "-" else a.trace
-        for result in replay(hdmap, read_trace(source, name), _engine_config(a), on_error):
+        lines = read_trace(live_lines(source.fileno()) if live else source, name)
+        for result in replay(hdmap, lines, _engine_config(a), on_error):
             out.write(format_answer(result.user, result.answer) + "\n")
+            if live:
+                out.flush()
             answered += 1
     finally:
         if source is not sys.stdin:
@@ -81,10 +86,10 @@ def _scenario(a: argparse.Namespace) -> tuple[Scenario, HdMap]:
     if a.map is not None:
         from laas.sim.roam import roam_scenario
 
-        hdmap = HdMap.load(a.map)
+        hdmap = read_geojson_file(a.map)
         return roam_scenario(hdmap, a.seed, users=a.users, duration=a.duration), hdmap
     scenario = get_scenario(a.scenario)
-    return scenario, HdMap.load(scenario.map)
+    return scenario, read_geojson_file(scenario.map)
 
 
 def _cmd_scenario(a: argparse.Namespace) -> int:
@@ -119,7 +124,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
         print(f"scenario {scenario.name}: {a.runs} seeded runs per row (seeds 0..{a.runs - 1})")
         print(format_table(rows))
     if a.plot:
-        hdmap = HdMap.load(scenario.map)
+        hdmap = read_geojson_file(scenario.map)
         _plots(scenario, hdmap, Path(a.plot), seed=0, sigma_pos=1.0, sigma_vel=0.25)
     return 0
 
@@ -448,7 +453,7 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
 
 
 def _http_args(p: argparse.ArgumentParser, default: int | None) -> None:
-    """--http and --http-host: the live map (`laas.dashboard`)."""
+    """--http and --http-host: the live map (`laas.worker.dashboard`)."""
     p.add_argument(
         "--http",
         type=int,
@@ -545,7 +550,7 @@ def _cmd_map_info(a: argparse.Namespace) -> int:
 def _cmd_map_show(a: argparse.Namespace) -> int:
     from laas.sim.plots import render_map
 
-    print(f"laas map show: wrote {render_map(HdMap.load(a.map), a.out, ids=a.ids)}")
+    print(f"laas map show: wrote {render_map(read_geojson_file(a.map), a.out, ids=a.ids)}")
     return 0
 
 

@@ -17,34 +17,22 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, get_args
+from typing import get_args
 
-from ldm.config import BrokerSettings, CoreConfig, build
+from ldm.config import CoreConfig, build
 from ldm.core.core import Core
 from ldm.errors import ConfigError, LdmError, PasswordFileError
 from ldm.local.embedded import EmbeddedBroker
-from ldm.ops.logs import LOG_FORMATS, configure
-from ldm.ops.metrics import Metrics, MetricsServer
+from ldm.ops.logs import configure
 from ldm.ops.passwd import random_password, set_passwords
+from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.security.identity import SigningKey, endorse
 from ldm.wire.rotation import MAX_SILENCE, RotationPolicy, Strategy
 
-__all__ = [
-    "broker_settings",
-    "core_config",
-    "main",
-    "operations_args",
-    "password_entries",
-    "pins",
-    "start_metrics",
-    "wait_for_signal",
-]
+__all__ = ["core_config", "main", "password_entries", "pins"]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -224,16 +212,6 @@ def password_entries(entries: Sequence[str]) -> tuple[dict[str, str], list[str]]
     return passwords, generated
 
 
-def broker_settings(
-    url: str, ca_file: Path | None, username: str | None, env: str
-) -> BrokerSettings:
-    """Broker settings from command-line values; the password is read from `env`."""
-    values: dict[str, Any] = {"url": url, "ca_file": ca_file, "username": username}
-    if username is not None:
-        values["password_env"] = env
-    return build(BrokerSettings, **values)
-
-
 def core_config(args: argparse.Namespace) -> CoreConfig:
     """The CoreConfig the `ldm core` arguments describe."""
     cluster = broker_settings(args.cluster, args.ca_file, args.username, args.password_env)
@@ -301,14 +279,6 @@ def _keys(args: argparse.Namespace) -> int:
     return 0
 
 
-def wait_for_signal() -> None:
-    """Block until SIGINT or SIGTERM (a service's main loop)."""
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    stop.wait()
-
-
 def _core(args: argparse.Namespace) -> None:
     """`ldm core`: serve until SIGINT or SIGTERM (metrics from before it connects)."""
     core = Core(core_config(args))
@@ -344,43 +314,6 @@ def _passwd(args: argparse.Namespace) -> int:
     for user in generated:
         print(f"{user}={passwords[user]}", flush=True)
     return 0
-
-
-def operations_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
-    """The options of a long-running command for its operators: metrics and log format."""
-    p.add_argument(
-        "--metrics-port",
-        type=int,
-        metavar="PORT",
-        default=os.environ.get(f"{env_prefix}_METRICS_PORT"),
-        help="serve /metrics, /healthz and /readyz on this port; 0 picks a free one "
-        f"(env {env_prefix}_METRICS_PORT; default: no metrics server)",
-    )
-    p.add_argument(
-        "--metrics-host",
-        metavar="HOST",
-        default=os.environ.get(f"{env_prefix}_METRICS_HOST", "127.0.0.1"),
-        help=f"address of the metrics server (env {env_prefix}_METRICS_HOST; default "
-        "127.0.0.1; 0.0.0.0 in a container)",
-    )
-    p.add_argument(
-        "--log-format",
-        choices=LOG_FORMATS,
-        default=None,
-        help="text, or json: one JSON object per line with component and event "
-        "(default: env LDM_LOG_FORMAT, else text)",
-    )
-
-
-def start_metrics(args: argparse.Namespace, who: str) -> tuple[Metrics, MetricsServer] | None:
-    """The metrics server `operations_args` asked for (None: none), serving at once:
-    /readyz says 503 until the components it is given are connected."""
-    if args.metrics_port is None:
-        return None
-    metrics = Metrics()
-    server = metrics.serve(args.metrics_host, args.metrics_port)
-    print(f"{who}: metrics on {server.url} (and /healthz, /readyz)", flush=True)
-    return metrics, server
 
 
 def _nats_cluster(args: argparse.Namespace) -> int:

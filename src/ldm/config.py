@@ -205,7 +205,7 @@ class CoreConfig(_Settings):
     client id admits ``rate`` messages per second on average and ``burst`` at once. It
     is applied as messages arrive, on the network thread, before they share a queue
     with anyone; what it admits waits in the client's own queue, and the queues are
-    served round-robin (`ldm.intake`), so a flooding client delays each other client
+    served round-robin (`ldm.transport.intake`), so a flooding client delays each other client
     by at most one message per round. A client has three such buckets: for its
     sessions' input (tagged with the session's secret), for well-formed session
     requests, and for everything else, each with its own 10 notices per second; so on

@@ -51,7 +51,7 @@ class SessionError(LdmError):
 
 
 class RequestRejected(SessionError):
-    """The core refused one input; ``reason`` says why (see `ldm.messages.Rejection`).
+    """The core refused one input; ``reason`` says why (see `ldm.wire.messages.Rejection`).
 
     ``rate_limited``: slow down (the core's per-participant rate and burst);
     ``too_large``: the payload is over the core's ``max_payload``; ``invalid``: the

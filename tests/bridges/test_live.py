@@ -303,3 +303,31 @@ def test_a_receiver_restarted_under_its_name_is_told_why_its_fixes_are_refused(
     assert again.stats.answered == 0 and again.stats.lost == 2
     assert "still holds the session of an earlier participant of this name" in caplog.text
     assert "restart under another name" in caplog.text
+
+
+def test_a_device_s_fixes_reach_the_service_in_order_and_once(
+    deployment: LocalDeployment, car: list[GpsMeasurement]
+) -> None:
+    """Fixes that arrive while a device's session opens, and after, go on in the order
+    they came; a fix not newer than its device's last (a QoS 1 redelivery, a phone's
+    second fix in the same second of ``tst``) is dropped by the bridge, not refused by
+    the service as stale."""
+    devices, count, gap = 4, 50, 0.03
+    start = int((time.time() - 10.0) * 1000)
+    fixes = [f.model_copy(update={"timestamp": start + 100 * i}) for i, f in enumerate(car[:count])]
+    pool = pool_for(deployment)
+    with pool:
+        for i, fix in enumerate(fixes):
+            for d in range(devices):
+                pool.submit(f"order.{d}", fix, lambda _a: None)
+                if i == count // 2:  # the same fix again
+                    pool.submit(f"order.{d}", fix, lambda _a: None)
+            time.sleep(gap)
+        assert pool.drain(30.0), pool.stats
+        stats = pool.stats
+    assert stats.stale == devices, stats
+    assert stats.refused == 0, stats
+    # lost: only what the user core refused for its rate, the fixes that waited for the
+    # session going on at once (a burst of at most 20 per client)
+    assert stats.answered + stats.lost == devices * count, stats
+    assert stats.answered >= 0.9 * devices * count, stats

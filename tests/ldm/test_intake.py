@@ -4,7 +4,7 @@ The fair queue and the core's intake are tested in-process first (deterministic)
 on real brokers, the embedded one and Mosquitto with the shipped ACL: a flooder is
 refused at intake while everyone else is answered, retained participant messages are
 cleared within the stated bound and never taken as input, and other users' latency
-under a flood (`ldm.floodbench`, short phases; its figures are printed, the assertions
+under a flood (`ldm.local.floodbench`, short phases; its figures are printed, the assertions
 are structural and loose: a 2-core machine shared with other jobs cannot promise p99).
 """
 

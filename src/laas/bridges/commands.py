@@ -17,9 +17,9 @@ from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
 from laas.errors import ConfigError
 from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings
-from ldm.cli import broker_settings, operations_args, start_metrics, wait_for_signal
 from ldm.config import build
 from ldm.ops.logs import configure
+from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 
 if TYPE_CHECKING:
     from laas.map.hdmap import HdMap
@@ -117,7 +117,8 @@ def _serve(bridge: Any, what: str, a: argparse.Namespace) -> int:
         s = bridge.pool.stats
         print(
             f"laas {what}: stopped; {s.opened} devices opened, {s.answered} answered, "
-            f"{s.refused} refused, {s.lost} lost, {s.malformed} malformed",
+            f"{s.refused} refused, {s.lost} lost, {s.malformed} malformed, "
+            f"{s.stale} not newer than their device's last (dropped)",
             file=sys.stderr,
             flush=True,
         )
@@ -136,12 +137,12 @@ def _cmd_owntracks(a: argparse.Namespace) -> int:
 
 def _cmd_cam(a: argparse.Namespace) -> int:
     from laas.bridges.cam import CamBridge, CamConfig
-    from laas.map.hdmap import HdMap
+    from laas.map.geojson import read_geojson_file
 
     _logging(a)
     own = _own_broker(a)
     config = build(CamConfig, topic_filter=a.topic, answer_topic=a.answer_topic, prefix=a.prefix)
-    hdmap = HdMap.load(a.map)  # lane numbers, and the devices' own answers while silent
+    hdmap = read_geojson_file(a.map)  # lane numbers, and the devices' own answers while silent
     return _serve(CamBridge(own, _pool(a, own, hdmap), hdmap, config), "cam", a)
 
 
@@ -186,7 +187,8 @@ def _cmd_gpsd(a: argparse.Namespace) -> int:
         s = pool.stats
         print(
             f"laas gpsd: {sent} fixes sent, {s.answered} answered, {s.refused} refused, "
-            f"{s.lost} lost, {s.malformed} malformed",
+            f"{s.lost} lost, {s.malformed} malformed, {s.stale} not newer than the last "
+            "(dropped)",
             file=sys.stderr,
         )
         if sent == 0:

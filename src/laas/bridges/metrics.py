@@ -8,7 +8,8 @@ ready while it is connected to the user-cluster broker):
 - ``laas_bridge_sessions_total{event}``: device sessions opened, devices forgotten
   after ``track_timeout`` of silence;
 - ``laas_bridge_messages_total{outcome}``: fixes sent on, answered, refused by the
-  service, lost (no reply), and device messages that were not a fix (malformed).
+  service, lost (no reply), device messages that were not a fix (malformed), and fixes
+  not newer than their device's last, dropped by the bridge (stale).
 
 No label names a device: they are counted, never listed.
 """
@@ -25,7 +26,7 @@ from ldm.ops.metrics import Check, Metrics
 
 __all__ = ["BridgeCollector", "watch_bridge"]
 
-_OUTCOMES = ("fixes", "answered", "refused", "lost", "malformed")
+_OUTCOMES = ("fixes", "answered", "refused", "lost", "malformed", "stale")
 
 
 class BridgeCollector(Collector):
@@ -50,7 +51,8 @@ class BridgeCollector(Collector):
         messages = CounterMetricFamily(
             "laas_bridge_messages",
             "Device messages by outcome: fixes sent on, answered, refused by the service, "
-            "lost without a reply, and malformed (not a fix).",
+            "lost without a reply, malformed (not a fix), and stale (not newer than the "
+            "device's last fix, dropped by the bridge).",
             labels=["outcome"],
         )
         for outcome in _OUTCOMES:

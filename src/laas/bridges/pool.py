@@ -11,6 +11,15 @@ named `laas`, or the regional workers of the `laas` family. Each fix goes to the
 whose region holds it (`ldm.RoutedSession`), so a device that drives across a border is
 handed over to the next worker.
 
+A device's fixes go on in the order they came, each once. A fix not newer than the
+device's last one (a QoS 1 message the broker delivered twice, an OwnTracks phone's
+second fix within one second of ``tst``, a receiver that repeats an epoch) is dropped
+here, logged at debug level and counted (`PoolStats.stale`): the service would refuse
+it as stale. The fixes that come while the session opens wait in the device's queue
+and are sent, in order, by the thread that opened it, before any later fix; a fix
+that comes once it is open is sent at once by the bridge's thread. One lock per device
+keeps the two from overtaking each other (`_Device.lock`).
+
 Threads: `submit`, `malformed` and `expire` may be called from any one thread (the
 bridge's). Sessions are opened on a small thread pool, so a device whose session is
 slow to open never holds up another. Answers are handed to the bridge's callback on
@@ -120,6 +129,7 @@ class PoolStats:
     opened: int = 0  # sessions opened
     forgotten: int = 0  # devices dropped after track_timeout of silence
     fixes: int = 0  # fixes submitted
+    stale: int = 0  # fixes not newer than their device's last, dropped (not in `fixes`)
     answered: int = 0  # corrected positions received, or made while the session kept quiet
     silent: int = 0  # of them, dead-reckoned by the bridge (`laas.deadreckon`)
     refused: int = 0  # error replies from the service
@@ -173,6 +183,10 @@ class _Device:
     participant: Participant | None = None
     last: tuple[CorrectedPosition, GpsMeasurement] | None = None  # its last answer, and fix
     last_fix: GpsMeasurement | None = None  # its last fix sent on (for its motion)
+    newest: int | None = None  # the timestamp of its newest fix taken, ms
+    waiting: list[tuple[GpsMeasurement, OnAnswer]] = field(default_factory=list)
+    ready: bool = False  # the session's outcome is known and `waiting` was sent on
+    lock: threading.Lock = field(default_factory=threading.Lock)  # orders its sends
 
 
 class DevicePool:
@@ -227,10 +241,24 @@ class DevicePool:
                 device = _Device(name, now, now, (fix.longitude, fix.latitude))
                 self._devices[name] = device
                 self.stats.devices = len(self._devices)
+                device.session.add_done_callback(lambda _f: self._flush(device))
                 self._executor.submit(self._open, device)
             device.last_seen = now
+            if device.newest is not None and fix.timestamp <= device.newest:
+                self.stats.stale += 1
+                log.debug(
+                    "device %s: a fix not newer than its last one (%d ms behind), dropped",
+                    name,
+                    device.newest - fix.timestamp,
+                )
+                return
+            device.newest = fix.timestamp
             self.stats.fixes += 1
-        device.session.add_done_callback(lambda f: self._send(device, f, fix, on_answer))
+        with device.lock:
+            if not device.ready:
+                device.waiting.append((fix, on_answer))
+                return
+            self._send(device, device.session, fix, on_answer)
 
     def malformed(self, name: str, problem: str) -> None:
         """Count a message of device `name` that was not a fix, and log it (rate-limited)."""
@@ -329,6 +357,15 @@ class DevicePool:
             participant.stop()
             return
         self.stats.opened += 1
+
+    def _flush(self, device: _Device) -> None:
+        """The session's outcome is known (opened, failed or cancelled): send the fixes
+        that waited for it, in order, before any later one."""
+        with device.lock:
+            waiting, device.waiting = device.waiting, []
+            for fix, on in waiting:
+                self._send(device, device.session, fix, on)
+            device.ready = True
 
     def _send(
         self,

@@ -2,12 +2,16 @@
 
 tracking       one Kalman filter per user: [e, n, v_e, v_n], constant velocity
 transition     the lane prediction step: heading against the lane direction
+lanefilter     the interface both modes implement
 paper          paper mode: discrete Bayes filter over all L^N joint hypotheses
 common_error   default mode: the shared GNSS error per area, a grid posterior
-assignment     default mode: the exact joint lane search in O(N^2 L^3)
-lanefilter     the two modes behind one lane-filter interface
-engine         map -> tracks -> segments -> lane filter -> corrected positions
+cooperative    default mode: the common error and every user's lane, jointly
+stacked        default mode's arithmetic for all users of an area at once, as arrays
+calibration    the lane probability mapped to how often it is right
+engine         map -> tracks -> segments -> lane filter -> corrected positions, and
+               `make_lane_filter`, the lane filter of a mode
 handover       what one regional worker hands the next: a user's state, area evidence
+batches        fixes in batches, offline as the live worker takes them
 """
 
 from laas.engine.engine import Engine, EngineStats

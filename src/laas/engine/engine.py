@@ -27,14 +27,24 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
+from laas.engine.cooperative import CooperativeLaneFilter
 from laas.engine.handover import AreaState, UserState
-from laas.engine.lanefilter import Placement, make_lane_filter
+from laas.engine.lanefilter import LaneFilter, Placement
+from laas.engine.paper import PaperLaneFilter
 from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
 from laas.engine.transition import motion_fit
 from laas.map.hdmap import HdMap, Segment
 from laas.models import CorrectedPosition, GpsMeasurement, LaneType
 
-__all__ = ["Engine", "EngineStats"]
+__all__ = ["Engine", "EngineStats", "make_lane_filter"]
+
+
+def make_lane_filter(config: EngineConfig) -> LaneFilter:
+    """The lane filter of `config.mode`."""
+    if config.mode == "paper":
+        return PaperLaneFilter(config)
+    return CooperativeLaneFilter(config)
+
 
 _HANDOVER_REACH = 10_000.0  # m: a handed-over track this far off the map is not ours
 

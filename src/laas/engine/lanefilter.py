@@ -3,7 +3,8 @@
 The engine keeps each user's track and finds its road element; a `LaneFilter` does the
 rest. Two implement it: `PaperLaneFilter` (the paper's joint-hypothesis filter, section
 IV-D) and `CooperativeLaneFilter` (the default: the common GNSS error and every user's
-lane estimated jointly). `make_lane_filter` picks one by `EngineConfig.mode`.
+lane estimated jointly). `laas.engine.engine.make_lane_filter` picks one by
+`EngineConfig.mode`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from laas.engine.handover import AreaState, LaneState
 from laas.engine.tracking import Track
 from laas.map.hdmap import Segment
 
-__all__ = ["LaneFilter", "Placement", "make_lane_filter"]
+__all__ = ["LaneFilter", "Placement"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,14 +99,3 @@ class LaneFilter(ABC):
         """Fold in a neighbour's own evidence of its areas (from `source`) whose centre
         lies in `box` (None: all); how many."""
         return 0
-
-
-def make_lane_filter(config: EngineConfig) -> LaneFilter:
-    """The lane filter of `config.mode`."""
-    if config.mode == "paper":
-        from laas.engine.paper import PaperLaneFilter
-
-        return PaperLaneFilter(config)
-    from laas.engine.cooperative import CooperativeLaneFilter
-
-    return CooperativeLaneFilter(config)

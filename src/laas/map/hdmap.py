@@ -14,7 +14,6 @@ import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Literal, cast, get_args
 
@@ -462,20 +461,6 @@ class HdMap:
         return (
             f"HdMap({self.source!r}, {len(self._segments)} segments, EPSG:{self.projection.epsg})"
         )
-
-    @classmethod
-    def load(cls, path: str | Path) -> HdMap:
-        """Load and validate a GeoJSON map file; raises :class:`MapError` naming the problem."""
-        from laas.map.geojson import read_geojson_file
-
-        return read_geojson_file(path)
-
-    @classmethod
-    def from_geojson(cls, data: Mapping[str, Any], source: str = "<memory>") -> HdMap:
-        """Build a map from a parsed GeoJSON FeatureCollection (see ``maps/README.md``)."""
-        from laas.map.geojson import read_geojson
-
-        return read_geojson(data, source)
 
     # -- queries -----------------------------------------------------------------------------
 

@@ -4,7 +4,7 @@ Used by the scenario simulator, the tests and the map scripts in ``maps/``. A ro
 polyline (its left edge or its centre line) and a list of lanes from left to right; every lane's
 centre line is a parallel (mitred) offset curve of the reference, and the road is cut into
 segments at given stations. The result is a GeoJSON FeatureCollection dict in the format of
-``maps/README.md`` that :meth:`laas.map.hdmap.HdMap.from_geojson` loads.
+``maps/README.md`` that :func:`laas.map.geojson.read_geojson` loads.
 
 Polylines can be drawn in a local metric frame (metres east and north of an origin) with
 :func:`track` (straights and circular curves) or :func:`arc`, then placed on Earth with

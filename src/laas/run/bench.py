@@ -1,7 +1,7 @@
 """`laas bench`: latency, throughput and the cost of privacy through the full topology.
 
     participant processes --> user broker <- user core -> backbone broker <- service core
-      (N ldm.Participants,        ^                                service broker <- worker
+      (N LDM participants,        ^                                service broker <- worker
        R Hz each, T seconds)      |
                                   +-- echo process (the bare MQTT floor)
 
@@ -53,6 +53,7 @@ from typing import Any, Literal
 import numpy as np
 
 from laas.errors import ConfigError
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.loadgen import paced_sessions
@@ -244,7 +245,7 @@ STAGES = (
     ("worker: open, engine, checks", "taken", "answered"),
     ("worker -> user core (reply)", "answered", "delivered"),
 )
-"""The stages `laas bench` times: (name, from point, to point) of `ldm.hops`."""
+"""The stages `laas bench` times: (name, from point, to point) of `ldm.ops.hops`."""
 
 
 def stage_latencies(hops: Hops) -> dict[str, Latency]:
@@ -264,7 +265,7 @@ def bench_scenario(
     With `spread` each user has a random phase within the period; without, every fix
     falls on a multiple of the period (the whole second at 1 Hz)."""
     base = hamburg_scenario()
-    hdmap = HdMap.load(base.map)
+    hdmap = read_geojson_file(base.map)
     length = sum(hdmap.segments[s].length for s in base.route) - 1.0
     rng = np.random.default_rng(seed)
     users = []
@@ -681,7 +682,7 @@ def _privacy(
 ) -> PrivacyRun:
     """The Hamburg scenario at `speedup`, pseudonyms rotating every `period` s of its time."""
     scenario = hamburg_scenario()
-    hdmap = HdMap.load(scenario.map)
+    hdmap = read_geojson_file(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), seed=0)
     with _deployment(kind, hdmap, period / speedup) as deployment:
         live = run_participants(
@@ -706,7 +707,7 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
     scenario = bench_scenario(
         config.participants, config.rate, config.duration, config.seed, spread=config.spread
     )
-    hdmap = HdMap.load(scenario.map)
+    hdmap = read_geojson_file(scenario.map)
     trace = simulate(hdmap, scenario, ErrorModel(), config.seed)
     say(
         f"laas bench: {config.participants} participants at {config.rate:g} Hz for "

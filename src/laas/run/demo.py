@@ -4,7 +4,7 @@ Starts three brokers, two LDM cores and the LaaS worker on this machine, runs th
 simulated road users of the Hamburg scenario as real participants (sped up), and ends
 with the accuracy of what they received over MQTT beside the offline engine on the same
 fixes, and the pictures of the paper's Fig. 3 and Fig. 4. While the road users run, the
-worker's live map is served (`laas.dashboard`) and its URL printed at the start.
+worker's live map is served (`laas.worker.dashboard`) and its URL printed at the start.
 """
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ import sys
 from pathlib import Path
 
 from laas.config import EngineConfig
-from laas.dashboard import DashboardServer
 from laas.errors import ConfigError
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson_file
 from laas.progress import progress_printer
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.participants import run_participants
 from laas.sim.plots import plot_lanes_over_time, plot_traces
 from laas.sim.scenario import hamburg_scenario, simulate_with
 from laas.sim.score import RunResult, answer_trace, score
+from laas.worker.dashboard import DashboardServer
 
 __all__ = ["run_demo"]
 
@@ -50,7 +50,7 @@ def run_demo(
     on `http_host`:`http_port` (0: a free port) while the road users run, and with
     `metrics_port` the cores' and the worker's metrics (/metrics, /healthz, /readyz)."""
     scenario = hamburg_scenario()
-    hdmap = HdMap.load(scenario.map)
+    hdmap = read_geojson_file(scenario.map)
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)
     errors = trace.errors
     config = EngineConfig(sigma_pos=sigma_pos, sigma_vel=sigma_vel, sigma_heading=0.05)

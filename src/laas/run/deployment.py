@@ -26,6 +26,7 @@ from typing import Any, Literal
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.worker.regions import Region, split
 from laas.worker.service import LaasService, WorkerConfig, start_worker
@@ -103,7 +104,7 @@ class LocalDeployment:
         self.identity = SigningKey.generate()
         """The laas worker's identity, pinned by the cores and by `trust`'s participants."""
         self.hops = hops
-        """Where the cores and the worker note each input's passage (`ldm.hops`)."""
+        """Where the cores and the worker note each input's passage (`ldm.ops.hops`)."""
         self._processes: list[_WorkerProcess] = []
         self._worker_answered = -1
         self.worker_cpu = math.nan
@@ -322,7 +323,7 @@ def _serve(
     """The worker process: serve until `stop` is set, then leave what it did."""
     identity = SigningKey.from_pem(pem)
     provider, service = start_worker(
-        url, HdMap.load(map_path), config, limits, identity=identity, region=region
+        url, read_geojson_file(map_path), config, limits, identity=identity, region=region
     )
     if hops:
         provider.hops = Hops()

@@ -24,6 +24,7 @@ import numpy as np
 
 from laas.config import EngineConfig, Mode
 from laas.engine.engine import Engine
+from laas.map.geojson import read_geojson
 from laas.map.hdmap import HdMap
 from laas.map.mapgen import LaneSpec, local_to_lonlat, road_features
 from laas.models import GpsMeasurement
@@ -54,7 +55,7 @@ class FilterRow:
 
 def _road() -> HdMap:
     reference = local_to_lonlat([(0.0, 0.0), (0.0, 1000.0)], 13.4050, 52.5200)  # Berlin
-    return HdMap.from_geojson(road_features("bench", reference, _LANES), source="bench road")
+    return read_geojson(road_features("bench", reference, _LANES), source="bench road")
 
 
 def _time_engine(hdmap: HdMap, n: int, mode: Mode, steps: int, seed: int, batch: bool) -> float:

@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from laas.map.bundled import bundled_map
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.service import LaasService, WorkerConfig, service_spec
 from laas.sim.roam import roam_scenario
@@ -185,7 +186,7 @@ def bench_worker(
     if batch < 1:
         raise ValueError(f"batch must be at least 1, not {batch}")
     say = progress or (lambda _line: None)
-    hdmap = HdMap.load(bundled_map(map_name))
+    hdmap = read_geojson_file(bundled_map(map_name))
     scenario = roam_scenario(hdmap, seed, users, duration)
     if not spread:
         on_the_second = tuple(u.model_copy(update={"phase": 0.0}) for u in scenario.users)

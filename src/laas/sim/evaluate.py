@@ -18,6 +18,7 @@ from functools import lru_cache
 import numpy as np
 
 from laas.config import EngineConfig, Mode
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.progress import Progress
 from laas.sim.integrity import Integrity, IntegrityTally
@@ -75,7 +76,7 @@ class Row:
 
 @lru_cache(maxsize=4)
 def _load(path: str) -> HdMap:
-    return HdMap.load(path)
+    return read_geojson_file(path)
 
 
 def _job(args: tuple[Scenario, ErrorModel, EngineConfig, int]) -> RunResult:

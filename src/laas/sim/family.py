@@ -123,6 +123,7 @@ from pydantic import BaseModel, ConfigDict
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import Direction, HdMap, LaneType
 from laas.map.mapgen import Curve, LaneSpec, Straight, road_features_utm, track
 from laas.sim.scenario import ErrorModel, Scenario, UserPlan, distance_driven
@@ -316,7 +317,7 @@ MAP_FAMILIES: dict[str, str] = {
 
 @functools.lru_cache(maxsize=8)
 def _real_map(name: str) -> HdMap:
-    return HdMap.load(bundled_map(MAP_FAMILIES[name]))
+    return read_geojson_file(bundled_map(MAP_FAMILIES[name]))
 
 
 def _map_case(name: str, seed: int) -> FamilyCase:
@@ -360,7 +361,7 @@ def build_case(family: str, seed: int) -> FamilyCase:
         reference_is="center",
     )
     name = f"{spec.name}-{seed}"
-    hdmap = HdMap.from_geojson(geojson, source=f"family:{name}")
+    hdmap = read_geojson(geojson, source=f"family:{name}")
     route = tuple(f"road-{k}" for k in range(len(road.split_at) + 1))
     duration = float(round(rng.uniform(60.0, 120.0)))
     errors = _draw_errors(spec, rng)

@@ -43,6 +43,7 @@ from laas.engine import Engine
 from laas.errors import ConfigError
 from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
+from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.map.mapgen import Curve, LaneSpec, Straight, road_features_utm, track
 from laas.models import CorrectedPosition, GpsMeasurement
@@ -290,14 +291,14 @@ def ring_map() -> HdMap:
     for feature in geojson["features"]:  # close the ring: the last element leads to the first
         if feature["properties"]["segment"] == last:
             feature["properties"]["successors"] = ["ring-0"]
-    return HdMap.from_geojson(geojson, source="ring")
+    return read_geojson(geojson, source="ring")
 
 
 @functools.lru_cache(maxsize=4)
 def _map(place: str) -> HdMap:
     if place == "ring":
         return ring_map()
-    return HdMap.load(bundled_map(MAP_FAMILIES.get(place, place)))
+    return read_geojson_file(bundled_map(MAP_FAMILIES.get(place, place)))
 
 
 def privacy_trace(place: str, users: int, duration: float, seed: int) -> tuple[HdMap, Trace]:

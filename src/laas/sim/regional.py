@@ -1,7 +1,7 @@
 """Regional workers offline: a trace answered by one worker and by N regional ones.
 
 Each fix goes to the worker of its region as a participant routes it live
-(`ldm.routing.RoutedSession`): it stays with its worker while the fix lies in that
+(`ldm.client.routing.RoutedSession`): it stays with its worker while the fix lies in that
 worker's coverage (`laas.worker.regions`, the strip grown by the overlap) and else goes
 to the worker whose coverage holds it deepest. Every worker is an `Engine` fed in the
 batches the live worker takes (`laas.engine.batches`). With ``handover`` on, a user's

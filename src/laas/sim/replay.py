@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 from laas.config import EngineConfig
-from laas.engine.batches import in_batches
+from laas.engine.batches import IDLE, Idle, in_batches
 from laas.engine.engine import Engine
 from laas.errors import TraceError
 from laas.map.hdmap import HdMap
@@ -27,21 +28,24 @@ class ReplayResult:
 
 def replay(
     hdmap: HdMap,
-    lines: Iterable[TraceLine | TraceError],
+    lines: Iterable[TraceLine | TraceError | Literal[Idle.IDLE]],
     config: EngineConfig | None = None,
     on_error: Callable[[TraceError], None] | None = None,
 ) -> Iterator[ReplayResult]:
     """Feed the trace to one engine in file order, in batches as the live worker takes
-    them (`laas.engine.batches`); bad lines go to `on_error`.
+    them (`laas.engine.batches`); bad lines go to `on_error`. `IDLE` among the lines (a
+    live source with nothing more ready) answers the batch gathered so far.
 
     Lines the engine refuses (a duplicate or an older timestamp of the same user) are
     reported to `on_error` too, and produce no answer.
     """
     engine = Engine(hdmap, config)
 
-    def good() -> Iterator[TraceLine]:
+    def good() -> Iterator[TraceLine | Literal[Idle.IDLE]]:
         for item in lines:
-            if isinstance(item, TraceError):
+            if item is IDLE:
+                yield item
+            elif isinstance(item, TraceError):
                 if on_error is not None:
                     on_error(item)
             else:

@@ -5,20 +5,36 @@
 
 Reading never stops at a bad line: each one becomes a `TraceError` that names the line
 and the problem, and the reader goes on with the next.
+
+A trace that is still being written (a pipe, a terminal: `is_live`) is read with
+`live_lines`, which says `IDLE` whenever no whole line is ready, so that `laas replay`
+answers what it has instead of waiting for the next line (`laas.engine.batches`).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import select
+import stat
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 from pydantic import ValidationError
 
+from laas.engine.batches import IDLE, Idle
 from laas.errors import TraceError
 from laas.models import CorrectedPosition, GpsMeasurement, problems
 
-__all__ = ["TraceLine", "format_answer", "format_measurement", "read_trace"]
+__all__ = [
+    "TraceLine",
+    "format_answer",
+    "format_measurement",
+    "is_live",
+    "live_lines",
+    "read_trace",
+]
 
 MAX_LINE = 64 * 1024  # bytes; a longer line is refused, not parsed
 
@@ -32,9 +48,44 @@ class TraceLine:
     measurement: GpsMeasurement
 
 
-def read_trace(lines: Iterable[str], source: str = "<trace>") -> Iterator[TraceLine | TraceError]:
-    """Yield each line as a `TraceLine`, or as a `TraceError` naming `source:line`."""
-    for number, text in enumerate(lines, start=1):
+def is_live(fd: int) -> bool:
+    """Whether the file descriptor is not a regular file (a pipe, a terminal, a socket):
+    its next line may be long in coming."""
+    return not stat.S_ISREG(os.fstat(fd).st_mode)
+
+
+def live_lines(fd: int, chunk: int = 65536) -> Iterator[str | Literal[Idle.IDLE]]:
+    """The lines of a pipe or terminal as they come, and `IDLE` before each wait for
+    more: whenever no whole line is ready. Bytes that are not UTF-8 become U+FFFD, and
+    the line holding them fails to read as a trace line (or names a strange user)."""
+    buffer = b""
+    while True:
+        end = buffer.find(b"\n")
+        if end >= 0:
+            line, buffer = buffer[: end + 1], buffer[end + 1 :]
+            yield line.decode("utf-8", errors="replace")
+            continue
+        if not select.select([fd], [], [], 0)[0]:
+            yield IDLE
+        data = os.read(fd, chunk)  # blocks until more comes, or the writer closes
+        if not data:
+            if buffer:
+                yield buffer.decode("utf-8", errors="replace")
+            return
+        buffer += data
+
+
+def read_trace(
+    lines: Iterable[str | Literal[Idle.IDLE]], source: str = "<trace>"
+) -> Iterator[TraceLine | TraceError | Literal[Idle.IDLE]]:
+    """Yield each line as a `TraceLine`, or as a `TraceError` naming `source:line`;
+    `IDLE` among the lines is passed on."""
+    number = 0
+    for text in lines:
+        if text is IDLE:
+            yield IDLE
+            continue
+        number += 1
         if not text.strip():
             continue
         where = f"{source}:{number}"

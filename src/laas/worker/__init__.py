@@ -6,8 +6,9 @@
     metrics     its Prometheus collector (`watch_worker`)
     asyncapi    the AsyncAPI document of its messages
     processes   several workers of one map, one process each (`laas worker --processes`)
+    dashboard   its live map: a web page over HTTP and server-sent events
     serve       a worker process's whole life (`serve_worker`): standby, region, metrics,
-                live map (`laas.dashboard`), stop
+                live map, stop
 
 `laas.service`, `laas.regions`, `laas.metrics`, `laas.asyncapi` and `laas.run.workers`
 name the same objects for the code that imports them from there.

@@ -1,6 +1,6 @@
 """`laas asyncapi`: the AsyncAPI 3.0 document of the LDM and of the `laas` service.
 
-Built by `ldm.asyncapi` from the LDM's topics and messages and from `laas.models`, so
+Built by `ldm.wire.asyncapi` from the LDM's topics and messages and from `laas.models`, so
 it cannot drift from the code; docs/asyncapi.json is this document, committed (a test
 checks it is current and valid).
 """

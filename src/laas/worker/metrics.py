@@ -1,4 +1,4 @@
-"""The LaaS worker's metrics, on top of the LDM's (`ldm.metrics`).
+"""The LaaS worker's metrics, on top of the LDM's (`ldm.ops.metrics`).
 
 `watch_worker` adds to a `Metrics` registry the provider under the worker (inputs,
 replies, queue, stage timings) and a collector that reads, when Prometheus scrapes,

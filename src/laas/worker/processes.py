@@ -3,7 +3,7 @@
 The map is cut into N regions (`laas.regions`) and each is served by a `laas worker
 --region K/N` child process, so each process owns the common-error areas and the road
 elements of its strip, and participants route their fixes to it by position
-(`ldm.routing.RoutedSession`). All children serve under one identity (participants pin
+(`ldm.client.routing.RoutedSession`). All children serve under one identity (participants pin
 the `laas` family to it): the key file given with ``--identity``, or one made for this
 run. Ports given for metrics or the live map are numbered on: child K gets port + K - 1
 (0 stays 0, a free port each). The supervisor ends every child when it is told to stop

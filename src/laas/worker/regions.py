@@ -6,14 +6,14 @@ width. Each worker serves the `laas` family as a service of its own name
 each neighbour (and by ``margin`` outwards, so fixes just off the map still find a
 worker), as a polygon of longitude and latitude. A participant sends each fix to the
 worker whose coverage holds it and stays with that worker while it is inside
-(`ldm.routing.RoutedSession`): so a road user crossing a border is handed over once
+(`ldm.client.routing.RoutedSession`): so a road user crossing a border is handed over once
 it is ``overlap`` metres past it, and the new worker has been estimating the common
 error of that side from its own users all along.
 
 Hand-over (`laas.worker.service`): while a user's fix lies past its worker's border
 (in the overlap, outside its ``strip``), the worker adds the user's state to the
 answer, sealed for the family (`laas.engine.handover`); the participant hands the
-latest to the next worker with its first fix there (`ldm.routing.RoutedSession`), which
+latest to the next worker with its first fix there (`ldm.client.routing.RoutedSession`), which
 goes on with the user's track and lane table. And each worker sends the others its own
 users' evidence about the common error of its areas (a family note, every
 ``share_every`` seconds), which those whose coverage holds an area fold into theirs, so

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
-from laas.map.hdmap import HdMap
+from laas.map.geojson import read_geojson_file
 from laas.worker.service import SERVICE_NAME, WorkerConfig, WorkerStats, start_worker
 from ldm import BrokerSettings
 from ldm.ops.metrics import Metrics
@@ -62,11 +62,11 @@ def serve_worker(
     metrics: Metrics | None = None,
     say: Callable[[str], None] = _say,
 ) -> WorkerStats:
-    """Serve until `wait` returns (`ldm.cli.wait_for_signal` for a process); the
+    """Serve until `wait` returns (`ldm.ops.process.wait_for_signal` for a process); the
     worker's counters. `metrics`: a registry to show the worker to (its /metrics)."""
     from laas.worker.regions import parse_region, split
 
-    hdmap = HdMap.load(options.map)
+    hdmap = read_geojson_file(options.map)
     region = None
     if options.region is not None:
         k, count = parse_region(options.region)
@@ -106,7 +106,7 @@ def serve_worker(
     live_map = None
     try:
         if options.http_port is not None:
-            from laas.dashboard import DashboardServer
+            from laas.worker.dashboard import DashboardServer
 
             live_map = DashboardServer(
                 service, provider, host=options.http_host, port=options.http_port

@@ -91,7 +91,7 @@ def request_like(payload: bytes) -> bool:
 
 def tagged(secrets: tuple[bytes, ...], payload: bytes) -> tuple[Envelope, bytes] | None:
     """An input envelope of at most 4 KiB, decoded, that carries a valid tag ``m`` of
-    one of the session's secrets (`ldm.crypto.input_tag`), with that secret; None for
+    one of the session's secrets (`ldm.security.crypto.input_tag`), with that secret; None for
     anything else. The core decodes and checks it here, once: the worker takes it as it
     is."""
     if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:

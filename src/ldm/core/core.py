@@ -104,7 +104,7 @@ class Core(Worker[Event]):
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each participant message admitted on paho's threads
         (``admit``) and each event handled on the worker thread (``route``); None: not
-        timed (`ldm.metrics.Metrics.watch_core` sets it)."""
+        timed (`ldm.ops.metrics.Metrics.watch_core` sets it)."""
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
         self.trust = Trust(config.service_keys, config.anchors)

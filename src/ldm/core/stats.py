@@ -24,7 +24,7 @@ class CoreStats:
     """Input under a new ephemeral key too soon after the last one (answered ``rate_limited``)."""
     rejected_unavailable: int = 0
     """Input for another cluster's service while the backbone broker is unreachable
-    (`ldm.core.core.Core._backbone_problem`; answered ``unavailable``)."""
+    (`ldm.core.routing.Router.backbone_problem`; answered ``unavailable``)."""
     granted: int = 0
     answered_nosession: int = 0
     """Input or requests for a session the core does not hold (answered ``nosession``)."""

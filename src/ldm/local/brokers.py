@@ -6,7 +6,7 @@ embedded amqtt broker or a real Mosquitto on a free port.
 
 Both kinds share the `RunningBroker` protocol (``url``, ``port``, ``start``, ``stop``;
 ``stop`` then ``start`` restarts on the same port). Mosquitto gets a generated config
-with ``set_tcp_nodelay true``. For pytest fixtures see `ldm.pytest_plugin`.
+with ``set_tcp_nodelay true``. For pytest fixtures see `ldm.local.pytest_plugin`.
 """
 
 from __future__ import annotations

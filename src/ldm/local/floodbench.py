@@ -1,4 +1,4 @@
-"""Other participants' latency while one participant floods: ``python -m ldm.floodbench``.
+"""Other participants' latency while one participant floods: ``python -m ldm.local.floodbench``.
 
     users process: N participants at HZ --+
                                           +--> user broker <- user core -> backbone broker
@@ -8,7 +8,7 @@
                                               + echo provider -> service broker
 
 The three brokers are Mosquitto processes; the user broker runs the shipped ACL
-(`ldm.brokers.mosquitto_acl`), unless ``--no-acl``. The user core runs in this
+(`ldm.local.brokers.mosquitto_acl`), unless ``--no-acl``. The user core runs in this
 process, the service core with the echo provider in another (as in a deployment, where
 each is a process or a container of its own), the users and the flooder in processes
 of their own. One run has two phases of equal length: a baseline (the users alone),
@@ -323,7 +323,7 @@ def format_report(report: FloodReport) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m ldm.floodbench",
+        prog="python -m ldm.local.floodbench",
         description="Other participants' p99 latency before and during one participant's flood.",
     )
     parser.add_argument("--participants", type=int, default=4, help="calm users (default 4)")

@@ -109,7 +109,7 @@ class NatsCluster:
 
     ``url`` names every node's MQTT listener (a cluster URL); ``settings(account)``
     adds the account's credentials. `kill` and `restart` take one node down and up
-    again; ``stop`` ends them all. Matches the `ldm.brokers.RunningBroker` protocol.
+    again; ``stop`` ends them all. Matches the `ldm.local.brokers.RunningBroker` protocol.
     """
 
     def __init__(

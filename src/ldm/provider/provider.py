@@ -17,7 +17,7 @@ core (`ldm.wire.batch`), cut apart on arrival; the worker takes everything that 
 (up to ``max_batch``), and the replies to it leave together, one batch once the worker
 has handled it all, or a single message when there is one.
 
-Family notes: the providers of one family (regional workers, `ldm.routing`), which
+Family notes: the providers of one family (regional workers, `ldm.client.routing`), which
 serve under one identity, may pass each other what their neighbours need (a service's
 own business: the LaaS workers share their common-error evidence). `Provider.note`
 publishes on ``ldm/svc/{family}/note/{service}``, sealed with the family's key
@@ -198,11 +198,11 @@ class Provider(Worker[Event]):
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self.hops: Hops | None = None
-        """Set to note when each input passes this provider (`ldm.hops`; `laas bench`)."""
+        """Set to note when each input passes this provider (`ldm.ops.hops`; `laas bench`)."""
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each input opened (``open``), each reply sealed
         (``seal``) and each turn of the handler (``step``); None: not timed
-        (`ldm.metrics.Metrics.watch_provider` sets it)."""
+        (`ldm.ops.metrics.Metrics.watch_provider` sets it)."""
         self._arrived: dict[int, float] = {}  # id(message) -> arrival, while hops are noted
         self._handler = handler
         self._batch_handler = batch_handler

@@ -8,7 +8,7 @@ hands them to ``handle_many`` at once (a provider's batch handler, a core's outb
 the inbox gives them in one hand-off (`Inbox.take`), not one at a time.
 
 The inbox is a plain FIFO unless the component brings its own `Inbox`: the core uses an
-`ldm.intake.FairQueue`, which serves its participants round-robin.
+`ldm.transport.intake.FairQueue`, which serves its participants round-robin.
 """
 
 from __future__ import annotations

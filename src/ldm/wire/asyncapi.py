@@ -1,10 +1,10 @@
 """The LDM's MQTT API as an AsyncAPI 3.0 document, built from the code it describes.
 
-Channel addresses come from `ldm.topics` (each topic function called with
+Channel addresses come from `ldm.wire.topics` (each topic function called with
 ``{parameter}`` placeholders), message payloads from the pydantic models of
-`ldm.messages` (``models_json_schema``), so the document cannot drift from either.
+`ldm.wire.messages` (``models_json_schema``), so the document cannot drift from either.
 A service adds its own messages (`ServiceApi`): the plaintext its participants send and
-get back, carried encrypted in the ``d`` of an `ldm.messages.Envelope`.
+get back, carried encrypted in the ``d`` of an `ldm.wire.messages.Envelope`.
 
     document(title="...", version="1.0", services=[ServiceApi("echo", In, (Out,))])
     render(doc)  # JSON text, stable from run to run

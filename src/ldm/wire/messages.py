@@ -51,7 +51,7 @@ class ServiceSpec(_Wire):
     Several providers may share one service among them by area: each is a service of
     its own name in the same ``family``, and announces its ``coverage``, a polygon of
     (longitude, latitude) vertices in degrees. A participant routes each input to the
-    provider whose coverage holds its position (`ldm.routing.RoutedSession`).
+    provider whose coverage holds its position (`ldm.client.routing.RoutedSession`).
     """
 
     name: str = Field(pattern=_NAME)
@@ -77,7 +77,7 @@ class ServiceSpec(_Wire):
 class ServiceDescription(ServiceSpec):
     """A service spec plus the provider's X25519 public key (base64, 32 bytes raw).
 
-    A provider with an identity signs it (`ldm.identity`): ``identity`` is its Ed25519
+    A provider with an identity signs it (`ldm.security.identity`): ``identity`` is its Ed25519
     public key, ``issued`` when this session key was made (a participant never goes
     back to an older one), ``signature`` covers every other field, and ``endorsement``
     is a trust anchor's signature of the identity for this service name, if it has one.
@@ -245,7 +245,7 @@ class Envelope(_Wire):
     k: str | None = Field(default=None, pattern=_B64, min_length=44, max_length=44)
     d: str = Field(pattern=_B64)
     m: str | None = Field(default=None, pattern=_B64, min_length=24, max_length=24)
-    """The participant's tag (`ldm.crypto.input_tag`), checked and removed by its core."""
+    """The participant's tag (`ldm.security.crypto.input_tag`), checked and removed by its core."""
 
     def encode(self) -> bytes:
         """Compact JSON, without unset optional fields."""

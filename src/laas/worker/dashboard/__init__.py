@@ -11,9 +11,9 @@ map's lanes, answered fixes, common-error areas), and ``static/index.html`` the 
 itself, self-contained. The page shows pseudonyms only: the worker knows no identity.
 """
 
-from laas.dashboard.feed import Client, Feed
-from laas.dashboard.server import DashboardServer
-from laas.dashboard.views import AreaSnapshot, area_views, lanes_geojson, observation_view
+from laas.worker.dashboard.feed import Client, Feed
+from laas.worker.dashboard.server import DashboardServer
+from laas.worker.dashboard.views import AreaSnapshot, area_views, lanes_geojson, observation_view
 
 __all__ = [
     "AreaSnapshot",

@@ -30,8 +30,8 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from laas.dashboard.views import AreaSnapshot, area_views, observation_view
 from laas.errors import ConfigError
+from laas.worker.dashboard.views import AreaSnapshot, area_views, observation_view
 from laas.worker.service import LaasService, Observation
 from ldm import Provider
 

@@ -20,9 +20,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib.resources import files
 from typing import Any
 
-from laas.dashboard.feed import Feed, sse
-from laas.dashboard.views import lanes_geojson
 from laas.errors import ConfigError
+from laas.worker.dashboard.feed import Feed, sse
+from laas.worker.dashboard.views import lanes_geojson
 from laas.worker.service import LaasService
 from ldm import Provider
 
@@ -37,8 +37,8 @@ _CSP = (
 
 
 def page() -> bytes:
-    """The page, from the package (``laas/dashboard/static/index.html``)."""
-    return files("laas.dashboard").joinpath("static/index.html").read_bytes()
+    """The page, from the package (``laas/worker/dashboard/static/index.html``)."""
+    return files("laas.worker.dashboard").joinpath("static/index.html").read_bytes()
 
 
 class DashboardServer:

@@ -288,19 +288,25 @@ def test_laas_cam_serves_its_metrics_and_logs_json(
     assert all(json.loads(line)["component"] == "laas-cam" for line in records)
 
 
-def test_a_receiver_restarted_under_its_name_is_told_why_its_fixes_are_refused(
+def test_a_receiver_restarted_under_its_name_is_answered_and_told_why_if_again(
     deployment: LocalDeployment, car: list[GpsMeasurement], caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The user core keeps a participant's session past its restart and refuses a new
-    ephemeral key within its rekey interval: the bridge says so, and what to do."""
-    fixes = now_shifted(car[:4], lead_s=10.0)
+    """A bridge restarted under its name is answered: the user core's fresh grant lets its
+    new ephemeral key in. Restarted again at once, the session's budget of key changes is
+    spent, the core refuses the new key within its rekey interval, and the bridge says so,
+    and what to do."""
+    fixes = now_shifted(car[:6], lead_s=10.0)
     with pool_for(deployment) as first:
         run_receiver(fixes[:2], first, "gpsd.restarted", lambda _a: None)
         assert first.drain(10) and first.stats.answered == 2
-    with caplog.at_level(logging.WARNING), pool_for(deployment) as again:
-        run_receiver(fixes[2:], again, "gpsd.restarted", lambda _a: None)
+    with pool_for(deployment) as again:
+        run_receiver(fixes[2:4], again, "gpsd.restarted", lambda _a: None)
         assert again.drain(10)
-    assert again.stats.answered == 0 and again.stats.lost == 2
+    assert again.stats.answered == 2, again.stats
+    with caplog.at_level(logging.WARNING), pool_for(deployment) as third:
+        run_receiver(fixes[4:], third, "gpsd.restarted", lambda _a: None)
+        assert third.drain(10)
+    assert third.stats.answered == 0 and third.stats.lost == 2, third.stats
     assert "still holds the session of an earlier participant of this name" in caplog.text
     assert "restart under another name" in caplog.text
 

@@ -15,13 +15,15 @@ that the answers *should* change (a model change), never a way to make a speed c
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from laas.config import EngineConfig
+from laas.config import EngineConfig, Mode
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
@@ -42,24 +44,47 @@ class Case:
     config: EngineConfig
 
 
-def cases() -> list[Case]:
-    """Every recorded case, built afresh (seeded, so the same traces every time)."""
-    out: list[Case] = []
-    for name, make in SCENARIOS.items():
-        scenario = make()
+def _makers() -> dict[str, Callable[[], Case]]:
+    """Each recorded case's name and how to build it (seeded: the same trace every time)."""
+
+    def scenario_case(name: str, mode: Mode) -> Case:
+        scenario = SCENARIOS[name]()
         hdmap = read_geojson_file(Path(__file__).parents[1] / "maps" / f"{name}.geojson")
         trace = simulate_with(hdmap, scenario, 0, sigma_pos=1.0, sigma_vel=0.25)
-        for mode in ("default", "paper"):
-            out.append(Case(f"{name}/{mode}", hdmap, trace, EngineConfig(mode=mode)))
-    runs = [(f, s) for f, seeds in get_suite("ci").cases for s in seeds]
-    runs += [(m, s) for m in MAP_FAMILIES for s in (0, 1)]
-    for family, seed in runs:
+        return Case(f"{name}/{mode}", hdmap, trace, EngineConfig(mode=mode))
+
+    def family_case(family: str, seed: int) -> Case:
         case = build_case(family, seed)
         trace = simulate_with(case.hdmap, case.scenario, seed, sigma_pos=1.0, sigma_vel=0.25)
         config = engine_config("default", 1.0)
         assert config.sigma_vel == sigma_vel_for(1.0)
-        out.append(Case(f"{family}/{seed}", case.hdmap, trace, config))
+        return Case(f"{family}/{seed}", case.hdmap, trace, config)
+
+    out: dict[str, Callable[[], Case]] = {}
+    for name in SCENARIOS:
+        modes: tuple[Mode, ...] = ("default", "paper")
+        for mode in modes:
+            out[f"{name}/{mode}"] = functools.partial(scenario_case, name, mode)
+    runs = [(f, s) for f, seeds in get_suite("ci").cases for s in seeds]
+    runs += [(m, s) for m in MAP_FAMILIES for s in (0, 1)]
+    for family, seed in runs:
+        out[f"{family}/{seed}"] = functools.partial(family_case, family, seed)
     return out
+
+
+def case_names() -> list[str]:
+    """The names of the recorded cases, in recording order (nothing is built)."""
+    return list(_makers())
+
+
+def build(name: str) -> Case:
+    """One recorded case, built afresh."""
+    return _makers()[name]()
+
+
+def cases() -> list[Case]:
+    """Every recorded case, built afresh (seeded, so the same traces every time)."""
+    return [make() for make in _makers().values()]
 
 
 def answer_arrays(case: Case, max_batch: int = 1) -> dict[str, np.ndarray]:

@@ -12,75 +12,115 @@ seeds of each real-map family):
   every case), and lane accuracy and mean error no worse than one at a time by more
   than 0.005 and 2 % over all cases (0.01 and 5 % in any one case; the first batched
   runs: 0.968-1.0 of the lanes the same per case, accuracy -0.0014 to +0.0044).
+
+The cases are answered on two processes (the test machine's two cores, as `laas evaluate`
+runs a suite), each case built afresh in its process; the checks run here.
 """
 
 from __future__ import annotations
 
-import functools
+import multiprocessing
+from collections.abc import Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from laas.sim.score import answer_trace, score
-from tests.reference_answers import TOLERANCE_M, Case, arrays, cases, load_record
+from tests.reference_answers import TOLERANCE_M, arrays, build, case_names, load_record
 
 _NAMES = sorted(load_record())
 
 
-@functools.cache
-def _cases() -> dict[str, Case]:
-    return {case.name: case for case in cases()}
+@dataclass(frozen=True)
+class Answered:
+    """One case's answers one at a time (`now`) and in batches, and their scores."""
+
+    name: str
+    mode: str
+    now: dict[str, np.ndarray]
+    batched: dict[str, np.ndarray]
+    accuracy: tuple[float, float]  # one at a time, batched
+    aed: tuple[float, float]
+    n: int
 
 
-_DONE: dict[str, tuple[np.ndarray, float, float, float, int]] = {}
-
-
-def _check(name: str) -> tuple[np.ndarray, float, float, float, int]:
-    """One case one at a time against its record and in batches against one at a time;
-    returns (same lane per answer, accuracy change, AED one at a time and batched, n)."""
-    if name in _DONE:
-        return _DONE[name]
-    case, rec = _cases()[name], load_record()[name]
+def answer_case(name: str) -> Answered:
+    """Build one recorded case and answer it one at a time and in batches."""
+    case = build(name)
     one = answer_trace(case.hdmap, case.trace, case.config, max_batch=1)
     batched = answer_trace(case.hdmap, case.trace, case.config)
-    now, bat = arrays(case.hdmap, one), arrays(case.hdmap, batched)
-    checked = [("one at a time", now)]
-    if case.config.mode == "paper":  # no common error: batches change nothing
-        checked.append(("in batches", bat))
+    s1, s2 = score(case.hdmap, case.trace, one), score(case.hdmap, case.trace, batched)
+    return Answered(
+        name,
+        case.config.mode,
+        arrays(case.hdmap, one),
+        arrays(case.hdmap, batched),
+        (s1.accuracy, s2.accuracy),
+        (s1.aed, s2.aed),
+        len(one),
+    )
+
+
+@pytest.fixture(scope="module")
+def answered(request: pytest.FixtureRequest) -> Iterator[dict[str, Future[Answered]]]:
+    """The cases the selected tests need, submitted at once to two processes; a test
+    waits for its own."""
+    selected = [i for i in request.session.items if i.path == request.path]
+    names = {i.callspec.params["name"] for i in selected if hasattr(i, "callspec")}
+    if any(i.name == "test_all_cases_in_batches_as_good" for i in selected):
+        names = set(_NAMES)
+    pool = ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        yield {name: pool.submit(answer_case, name) for name in _NAMES if name in names}
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _check(r: Answered) -> np.ndarray:
+    """One at a time against the record (and in batches too in paper mode, which has no
+    common error); returns, per answer, whether batched is on the lane of one at a time."""
+    rec = load_record()[r.name]
+    checked = [("one at a time", r.now)]
+    if r.mode == "paper":  # no common error: batches change nothing
+        checked.append(("in batches", r.batched))
     for how, got in checked:
         other = int(np.sum(got["lane"] != rec["lane"]))
         worst = float(np.nanmax(np.hypot(*(got["xy"] - rec["xy"]).T), initial=0.0))
         if not np.array_equal(np.isnan(got["xy"]), np.isnan(rec["xy"])):
             worst = float("inf")
         assert other == 0 and worst <= TOLERANCE_M, (
-            f"{name} {how}: {other} answers on other lanes than recorded, worst {worst:.2e} m"
+            f"{r.name} {how}: {other} answers on other lanes than recorded, worst {worst:.2e} m"
         )
-    s1, s2 = score(case.hdmap, case.trace, one), score(case.hdmap, case.trace, batched)
-    agree = np.asarray(now["lane"] == bat["lane"])
-    _DONE[name] = (agree, s2.accuracy - s1.accuracy, s1.aed, s2.aed, len(one))
-    return _DONE[name]
+    return np.asarray(r.now["lane"] == r.batched["lane"])
 
 
 def test_every_case_has_its_record() -> None:
-    assert set(_cases()) == set(_NAMES), "a case without a record, or the reverse"
+    assert set(case_names()) == set(_NAMES), "a case without a record, or the reverse"
 
 
 @pytest.mark.parametrize("name", _NAMES)
-def test_a_case_one_at_a_time_and_in_batches(name: str) -> None:
-    agree, d_acc, aed1, aed2, _ = _check(name)
-    if _cases()[name].config.mode == "paper":
+def test_a_case_one_at_a_time_and_in_batches(
+    name: str, answered: dict[str, Future[Answered]]
+) -> None:
+    r = answered[name].result()
+    agree = _check(r)
+    if r.mode == "paper":
         return
+    d_acc = r.accuracy[1] - r.accuracy[0]
+    aed1, aed2 = r.aed
     assert agree.mean() >= 0.95, f"{name}: {agree.mean():.3f} of lanes as one at a time"
     assert d_acc >= -0.01, f"{name}: lane accuracy {d_acc:+.4f} in batches"
     assert aed2 <= 1.05 * aed1, f"{name}: mean error {aed1:.3f} m one at a time, {aed2:.3f} batched"
 
 
-def test_all_cases_in_batches_as_good() -> None:
-    done = [_check(name) for name in _NAMES if _cases()[name].config.mode == "default"]
-    share = float(np.concatenate([d[0] for d in done]).mean())
+def test_all_cases_in_batches_as_good(answered: dict[str, Future[Answered]]) -> None:
+    done = [r for r in (answered[name].result() for name in _NAMES) if r.mode == "default"]
+    share = float(np.concatenate([_check(r) for r in done]).mean())
     assert share >= 0.99, f"only {share:.4f} of batched answers on the lane of one at a time"
-    n = np.array([d[4] for d in done], dtype=float)
-    d_acc = float(np.array([d[1] for d in done]) @ n / n.sum())
-    aed1, aed2 = (float(np.array([d[k] for d in done]) @ n / n.sum()) for k in (2, 3))
+    n = np.array([r.n for r in done], dtype=float)
+    d_acc = float(np.array([r.accuracy[1] - r.accuracy[0] for r in done]) @ n / n.sum())
+    aed1, aed2 = (float(np.array([r.aed[k] for r in done]) @ n / n.sum()) for k in (0, 1))
     assert d_acc >= -0.005, f"lane accuracy {d_acc:+.4f} in batches over all cases"
     assert aed2 <= 1.02 * aed1, f"mean error {aed1:.3f} m one at a time, {aed2:.3f} m batched"

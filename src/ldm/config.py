@@ -103,7 +103,7 @@ class BrokerSettings(_Settings):
 
     @property
     def tls(self) -> bool:
-        return urlsplit(self.url).scheme == "mqtts"
+        return _split_url(self.url)[0] == "mqtts"
 
     @property
     def addresses(self) -> tuple[tuple[str, int], ...]:
@@ -133,18 +133,30 @@ _URL_FORMS = (
 )
 
 
+def _split_url(url: str) -> tuple[str, str]:
+    """(scheme, the comma-separated nodes) of a broker URL. Not `urlsplit` on the whole:
+    a cluster's netloc with an IPv6 node among others is no valid single netloc, and
+    Python releases with the bracketed-host check refuse it."""
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return "", ""
+    for end in "/?#":
+        rest = rest.partition(end)[0]
+    return scheme.lower(), rest
+
+
 def _parse_url(url: str) -> tuple[tuple[str, int], ...]:
     """The (host, port) pairs of a broker URL; ValueError says what is wrong."""
-    parts = urlsplit(url)
-    if parts.scheme not in ("mqtt", "mqtts") or not parts.netloc:
+    scheme, netloc = _split_url(url)
+    if scheme not in ("mqtt", "mqtts") or not netloc:
         raise ValueError(_URL_FORMS)
-    if "@" in parts.netloc:
+    if "@" in netloc:
         raise ValueError("put credentials in username/password_env, not in the URL")
-    default = 8883 if parts.scheme == "mqtts" else 1883
+    default = 8883 if scheme == "mqtts" else 1883
     addresses: list[tuple[str, int]] = []
-    for node in parts.netloc.split(","):
-        one = urlsplit(f"//{node.strip()}")
+    for node in netloc.split(","):
         try:
+            one = urlsplit(f"//{node.strip()}")
             port = one.port or default
         except ValueError:
             raise ValueError(f"{node!r} has no valid port; {_URL_FORMS}") from None

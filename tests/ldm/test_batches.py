@@ -147,7 +147,9 @@ def test_a_malformed_envelope_in_a_batch_costs_only_itself(mqtt_broker) -> None:
             good[2],
         ]
         payload = batch.encode(lines) + b"\nno-envelope-here\n/+# {}"
-        assert wait_for(lambda: provider.transport.connected, 5)
+        # connected is not subscribed: wait for the broker's SUBACK of the batch topic
+        batch_topic = topics.provider_input_batch("echo")
+        assert wait_for(lambda: batch_topic in provider.transport.granted, 5)
         core.publish(topics.provider_input_batch("echo"), payload, qos=1)
         assert wait_for(lambda: provider.stats.requests == 3, 5), provider.stats
         assert provider.stats.dropped_invalid == 4, provider.stats

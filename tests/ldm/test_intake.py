@@ -269,9 +269,12 @@ def test_a_flooder_is_refused_at_intake_and_others_are_all_answered(
         flooder.start()
         start = time.monotonic()
         assert wait_for(lambda: core.stats.rejected_rate > 500, 10), "no flood"
-        for i in range(5):  # while the flood goes on
-            assert a.request({"a": i}, timeout=3.0) == {"echo": {"a": i}}
-            assert b.request({"b": i}, timeout=3.0) == {"echo": {"b": i}}
+        # while the flood goes on, each honest request is answered (how fast belongs to
+        # `python -m ldm.local.floodbench`: on a loaded machine the embedded broker, which
+        # carries the flood on the same cores, took more than 3 s once)
+        for i in range(5):
+            assert a.request({"a": i}, timeout=10.0) == {"echo": {"a": i}}
+            assert b.request({"b": i}, timeout=10.0) == {"echo": {"b": i}}
         stop.set()
         flooder.join()
         elapsed = time.monotonic() - start

@@ -54,8 +54,14 @@ def _participants(url: str, n: int, rate: float, seconds: float, out: Any, go: A
     from ldm import Participant
 
     clients = [Participant.create(url, client_id=f"bench-{i}").start(timeout=10) for i in range(n)]
+    # The service core announces `echo` over the backbone after the provider is up;
+    # a participant that asks before its list names it is refused (ServiceNotFound).
+    deadline = time.time() + 30
     for p in clients:
-        p.services(10)
+        while not any(s.name == "echo" for s in p.services(10)):
+            if time.time() > deadline:
+                raise SystemExit("corebench: the user cluster never listed 'echo' within 30 s")
+            time.sleep(0.05)
     sessions = [p.open("echo", timeout=10) for p in clients]
     out.put(("ready", 0))
     go.wait()

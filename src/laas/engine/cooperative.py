@@ -262,9 +262,22 @@ class CooperativeLaneFilter(LaneFilter):
         position = np.array([track.position for track in tracks])
         velocity = np.array([track.velocity for track in tracks])
         dt = np.array([track.dt for track in tracks])
+        # The road's frame at the fix p: there the offset measured with b = 0 is
+        # d = d(p), for every b alike, so a curve, whose normal turns under the user,
+        # makes the common error along the road observable. A fix is up to 15 m off,
+        # though, and beyond the element's ends its frame is only the straight extension
+        # of its last tangent: a user turning there would seem to sweep across the lanes.
+        # There the frame is taken where the user is, at its fix less the area's current
+        # estimate of the common error, q = p - b^, and linear about q, d = d(q) + n . b^.
+        areas = [self._errors.at(p) for p in position]
+        b_hat = np.array([area.b for area in areas])
         frame = segment.frame_many(position)
+        beyond = (frame[:, 0] < 0.0) | (frame[:, 0] > segment.length)
+        if beyond.any():
+            frame[beyond] = segment.frame_many(position[beyond] - b_hat[beyond])
         tangent = segment.tangent_many(frame[:, 0])
         normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        d = frame[:, 1] + np.where(beyond, _dot(normal, b_hat), 0.0)
         offsets = segment.lane_offsets_many(frame[:, 0])
         # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
         # and its type's speeds.
@@ -311,7 +324,7 @@ class CooperativeLaneFilter(LaneFilter):
         )
         out = []
         for i, (user, track, _, _) in enumerate(work):
-            area = self._errors.at(track.position)
+            area = areas[i]
             alpha = self._table(user, segment, area, normal[i], position[i])
             self._lanes[user] = _Lanes(segment, area, normal[i], alpha)
             # Only the values of u = n . b that the posterior of b still holds, [lo, hi),
@@ -329,7 +342,7 @@ class CooperativeLaneFilter(LaneFilter):
                     alpha,
                     lo,
                     hi,
-                    float(frame[i, 1]),
+                    float(d[i]),
                     offsets[i],
                     transition[i],
                     fit[i] ** memory[i],

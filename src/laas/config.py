@@ -72,6 +72,13 @@ class EngineConfig(Settings):
     )
 
     # Tracks.
+    track_multipath: Probability = Field(
+        default=0.05,
+        description=(
+            "default mode: the share of fixes a Kalman track takes to be in multipath "
+            "(metres off, see laas.engine.tracking); 0 gives the plain Kalman filter"
+        ),
+    )
     track_timeout: Positive = Field(
         default=5.0, description="a gap longer than this (s) restarts a user's track"
     )

@@ -6,6 +6,19 @@ measures the position and, from speed s and heading h, the velocity:
 
     z = [e, n, s sin h, s cos h],    z = H x + v,    H = I (4x4)
 
+A receiver spends a share pi of its time in multipath, its fixes then metres off for
+seconds (a reflection, not noise). A plain Kalman filter takes such a fix at its stated
+sigma, and at 10 Hz the track follows the reflection and keeps it for seconds after, while
+its covariance says it is within decimetres. In default mode (`track_multipath` = pi > 0)
+each fix is weighed by how likely it is to be in multipath given its position's
+innovation y and S = P + R (the position's 2x2 blocks):
+
+    rho = pi N(y; 0, S + s_mp^2 I) / ((1 - pi) N(y; 0, S) + pi N(y; 0, S + s_mp^2 I))
+
+and taken with the variance it then has, R_pos + rho s_mp^2 I (s_mp = `MULTIPATH_SIGMA`):
+a fix that fits the track counts in full, one metres off barely moves it. Paper mode, and
+pi = 0, is the plain filter.
+
 The filter is filterpy's `KalmanFilter` written out for this model (predict with
 F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
 few numpy calls: filterpy's general predict and update cost about 150 us a fix, most of
@@ -24,9 +37,34 @@ import numpy as np
 
 from laas.config import EngineConfig
 
-__all__ = ["Fix", "Track", "TrackUpdate", "kalman_steps"]
+__all__ = ["MULTIPATH_SIGMA", "Fix", "Track", "TrackUpdate", "kalman_steps", "multipath_weight"]
 
 _MIN_VELOCITY_VAR = 0.05**2  # m^2/s^2: a floor, so a stopped receiver's heading is not trusted
+MULTIPATH_SIGMA = 3.0
+"""m per axis: how far a receiver in multipath is off (the development families' jumps are
+1-6 m; in cities it is the most common receiver fault). The lane filter uses the same."""
+
+
+def multipath_weight(s: np.ndarray, y: np.ndarray, share: float) -> np.ndarray:
+    """rho of the module docstring for stacked position innovations y (B, 2) with
+    covariances S (B, 2, 2): the posterior probability that each fix is in multipath."""
+    wide = s + MULTIPATH_SIGMA**2 * np.eye(2)
+
+    def log_density(c: np.ndarray) -> np.ndarray:
+        det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+        # y' C^-1 y for 2x2 C, written out
+        m2 = (
+            c[:, 1, 1] * y[:, 0] ** 2
+            - 2.0 * c[:, 0, 1] * y[:, 0] * y[:, 1]
+            + c[:, 0, 0] * y[:, 1] ** 2
+        ) / det
+        out: np.ndarray = -0.5 * m2 - 0.5 * np.log(det)
+        return out
+
+    narrow = math.log(1.0 - share) + log_density(s)
+    broad = math.log(share) + log_density(wide)
+    out: np.ndarray = 1.0 / (1.0 + np.exp(np.clip(narrow - broad, -700.0, 700.0)))
+    return out
 
 
 class TrackUpdate(enum.Enum):
@@ -112,9 +150,22 @@ class Track:
         if outcome is TrackUpdate.ACCEPTED and self._config.kalman:
             dt = fix.t - self.t
             self._predict(dt)
-            self._update(np.array([fix.e, fix.n, *fix.velocity]), self._measurement_noise(fix))
+            z = np.array([fix.e, fix.n, *fix.velocity])
+            self._update(z, self._robust(z, self._measurement_noise(fix)))
             self._accepted(fix, dt)
         return outcome
+
+    def _robust(self, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """R with the position's variance raised by rho s_mp^2 (module docstring)."""
+        share = self._config.track_multipath
+        if share <= 0.0 or self._config.mode != "default":
+            return r
+        s = (self._P[:2, :2] + r[:2, :2])[None]
+        rho = float(multipath_weight(s, (z[:2] - self._x[:2])[None], share)[0])
+        r = r.copy()
+        r[0, 0] += rho * MULTIPATH_SIGMA**2
+        r[1, 1] += rho * MULTIPATH_SIGMA**2
+        return r
 
     def admit(self, fix: Fix) -> TrackUpdate:
         """`update` but for the Kalman step of an accepted fix, which is left to the
@@ -206,7 +257,8 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
         track, fix = tracks[0], fixes[0]
         dt = fix.t - track.t
         track._predict(dt)
-        track._update(np.array([fix.e, fix.n, *fix.velocity]), track._measurement_noise(fix))
+        z = np.array([fix.e, fix.n, *fix.velocity])
+        track._update(z, track._robust(z, track._measurement_noise(fix)))
         track._accepted(fix, dt)
         return
     config = tracks[0]._config
@@ -228,6 +280,12 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     # Update (Track._update): K = P S^-1, x += K (z - x), Joseph's form of P.
     z = np.array([[fx.e, fx.n, *fx.velocity] for fx in fixes])
     r = np.stack([tr._measurement_noise(fx) for tr, fx in zip(tracks, fixes, strict=True)])
+    if config.track_multipath > 0.0 and config.mode == "default":  # Track._robust
+        rho = multipath_weight(
+            p[:, :2, :2] + r[:, :2, :2], z[:, :2] - x[:, :2], config.track_multipath
+        )
+        r[:, 0, 0] += rho * MULTIPATH_SIGMA**2
+        r[:, 1, 1] += rho * MULTIPATH_SIGMA**2
     k = np.linalg.solve(p + r, p).transpose(0, 2, 1)
     x = x + np.einsum("bij,bj->bi", k, z - x)
     i_k = np.eye(4) - k

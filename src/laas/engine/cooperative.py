@@ -71,7 +71,7 @@ from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.handover import AreaState, HandoverError, LaneState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
-from laas.engine.tracking import Track
+from laas.engine.tracking import MULTIPATH_SIGMA, Track
 from laas.engine.transition import LaneTraits, lane_transition_many, motion_fit_many
 from laas.map.hdmap import Segment
 
@@ -83,8 +83,7 @@ _CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new
 # A receiver spends a share of its time in multipath, its fix then metres off: in the
 # development families 3-10 % of the time (up to 1/60-1/20 jumps per s, each lasting
 # 1-9 s), jumps of 1-6 m; in cities it is the most common receiver fault.
-_MULTIPATH_SHARE = 0.05
-_MULTIPATH_SIGMA = 3.0  # m, across the road
+_MULTIPATH_SHARE = 0.05  # the default of EngineConfig.track_multipath, which the tracks use
 _HANDED_MASS = 1e-9  # a hand-over carries the lane table where p(u) > this * its peak
 _HANDED_MARGIN = 10  # and this many u-cells (1 m) on either side
 
@@ -374,7 +373,7 @@ class CooperativeLaneFilter(LaneFilter):
             np.array([u.weight for u in users]),
             _OFF_LANE,
             _MULTIPATH_SHARE,
-            _MULTIPATH_SIGMA,
+            MULTIPATH_SIGMA,
         )
         for k, u in enumerate(users):
             u.alpha[u.lo : u.hi] = alpha[k, : u.hi - u.lo, : len(u.offsets)]

@@ -9,7 +9,10 @@ lateral offset o_l, so its filtered position's offset d_i, measured with b = 0, 
 
 with P_i the covariance of the user's Kalman-filtered position, s_rx the receiver's own
 lasting error (bias, multipath; `sigma_receiver`) and k > 1 because successive filtered
-fixes share their errors (`filtered_inflation`).
+fixes share their errors (`filtered_inflation`). d_i is taken in the element's frame at
+the fix itself, the same for every b; beyond the element's ends, where that frame is
+only the straight extension of its last tangent, at the fix less the estimate b^ of b,
+d_i = d(p_i - b^) + n . b^.
 
 Which lane a user is on and what b is explain the same fixes: moving b by a lane width
 and every user by one lane fits them as well. They are therefore estimated together,

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from laas.config import EngineConfig
-from laas.engine.tracking import Fix, Track, TrackUpdate, kalman_steps
+from laas.engine.tracking import DOUBT_SECONDS, Fix, Track, TrackUpdate, kalman_steps
 
 
 def _fix(t: float, e: float, n: float, speed: float = 10.0, heading_deg: float = 90.0) -> Fix:
@@ -205,3 +205,26 @@ def test_a_batch_weighs_multipath_as_one_track_at_a_time() -> None:
         for a, b in zip(one, many, strict=True):
             np.testing.assert_allclose(b.position, a.position, rtol=0, atol=1e-9)
             np.testing.assert_allclose(b.position_cov, a.position_cov, rtol=0, atol=1e-12)
+
+
+def test_a_track_that_its_fixes_keep_contradicting_follows_them() -> None:
+    """Fixes that jump 4 m and stay there (a track started in multipath, or one that missed
+    a manoeuvre, looks the same to it) are weighed as a reflection for `DOUBT_SECONDS`;
+    then the track is doubted and follows them, within half a metre a second later."""
+    config = EngineConfig()
+    rng = np.random.default_rng(4)
+    track: Track | None = None
+    error = np.inf
+    for k in range(300):
+        t = k * 0.1
+        true = np.array([500_000.0 + 10.0 * t, 5_900_000.0 + (4.0 if t >= 20.0 else 0.0)])
+        e, n = true + rng.normal(0.0, 0.3, 2)
+        fix = _fix(t, float(e), float(n), speed=10.0)
+        if track is None:
+            track = Track(config, fix)
+            continue
+        track.update(fix)
+        if t >= 20.0 + DOUBT_SECONDS + 1.0:
+            error = min(error, float(np.hypot(*(track.position - true))))
+            assert np.hypot(*(track.position - true)) < 0.5, t
+    assert error < 0.5

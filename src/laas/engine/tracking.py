@@ -16,8 +16,13 @@ innovation y and S = P + R (the position's 2x2 blocks):
     rho = pi N(y; 0, S + s_mp^2 I) / ((1 - pi) N(y; 0, S) + pi N(y; 0, S + s_mp^2 I))
 
 and taken with the variance it then has, R_pos + rho s_mp^2 I (s_mp = `MULTIPATH_SIGMA`):
-a fix that fits the track counts in full, one metres off barely moves it. Paper mode, and
-pi = 0, is the plain filter.
+a fix that fits the track counts in full, one metres off barely moves it. A reflection
+lasts seconds; fixes that keep disagreeing with the track for longer than
+`DOUBT_SECONDS` say that the track is the one that is off (it started, or was dragged,
+in multipath, or missed a manoeuvre), so its position's covariance is widened by
+s_mp^2 I and the fix taken at its own sigma: without this, a track a few metres off,
+whose velocity the fixes keep measuring well, would weigh every later fix as a
+reflection and never come back. Paper mode, and pi = 0, is the plain filter.
 
 The filter is filterpy's `KalmanFilter` written out for this model (predict with
 F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
@@ -37,12 +42,26 @@ import numpy as np
 
 from laas.config import EngineConfig
 
-__all__ = ["MULTIPATH_SIGMA", "Fix", "Track", "TrackUpdate", "kalman_steps", "multipath_weight"]
+__all__ = [
+    "DOUBT_SECONDS",
+    "MULTIPATH_SIGMA",
+    "Fix",
+    "Track",
+    "TrackUpdate",
+    "kalman_steps",
+    "multipath_weight",
+]
 
 _MIN_VELOCITY_VAR = 0.05**2  # m^2/s^2: a floor, so a stopped receiver's heading is not trusted
 MULTIPATH_SIGMA = 3.0
 """m per axis: how far a receiver in multipath is off (the development families' jumps are
 1-6 m; in cities it is the most common receiver fault). The lane filter uses the same."""
+DOUBT_SECONDS = 2.0
+"""s: how long fixes may keep disagreeing with a track (from a fix of rho > 1/2 until one
+that clearly fits, rho < 0.1) before the track is doubted instead: a reflection lasts
+seconds (in the development families 2-6 s on average, exponentially distributed), so by
+2 s a disagreement that began as a reflection is as likely the track's own."""
+_AGREES = 0.1  # a disagreement begins with a fix of rho > 1/2 and ends with one of rho < this
 
 
 def multipath_weight(s: np.ndarray, y: np.ndarray, share: float) -> np.ndarray:
@@ -103,6 +122,7 @@ class Track:
         self.t = fix.t
         self.dt = 0.0
         self.last_fix = fix
+        self._doubted: float | None = None  # since when fixes disagree with the track
         self._start(fix)
 
     def _measurement_noise(self, fix: Fix) -> np.ndarray:
@@ -132,6 +152,7 @@ class Track:
         self.t = fix.t
         self.dt = 0.0
         self.last_fix = fix
+        self._doubted = None
 
     def classify(self, fix: Fix) -> TrackUpdate:
         """What `update` would do with the fix, changing nothing."""
@@ -151,21 +172,38 @@ class Track:
             dt = fix.t - self.t
             self._predict(dt)
             z = np.array([fix.e, fix.n, *fix.velocity])
-            self._update(z, self._robust(z, self._measurement_noise(fix)))
+            self._update(z, self._robust(z, self._measurement_noise(fix), fix.t))
             self._accepted(fix, dt)
         return outcome
 
-    def _robust(self, z: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """R with the position's variance raised by rho s_mp^2 (module docstring)."""
+    def _robust(self, z: np.ndarray, r: np.ndarray, t: float) -> np.ndarray:
+        """R with the position's variance raised by rho s_mp^2, or the track doubted
+        (module docstring)."""
         share = self._config.track_multipath
         if share <= 0.0 or self._config.mode != "default":
             return r
         s = (self._P[:2, :2] + r[:2, :2])[None]
         rho = float(multipath_weight(s, (z[:2] - self._x[:2])[None], share)[0])
+        if self._doubt(rho, t):
+            self._P[:2, :2] += MULTIPATH_SIGMA**2 * np.eye(2)
+            return r
         r = r.copy()
         r[0, 0] += rho * MULTIPATH_SIGMA**2
         r[1, 1] += rho * MULTIPATH_SIGMA**2
         return r
+
+    def _doubt(self, rho: float, t: float) -> bool:
+        """Whether a fix of weight rho at time t ends a disagreement long enough to doubt
+        the track (`DOUBT_SECONDS`); keeps the time the disagreement began."""
+        if rho < _AGREES or (self._doubted is None and rho <= 0.5):
+            self._doubted = None
+            return False
+        if self._doubted is None:
+            self._doubted = t
+        if t - self._doubted < DOUBT_SECONDS:
+            return False
+        self._doubted = None
+        return True
 
     def admit(self, fix: Fix) -> TrackUpdate:
         """`update` but for the Kalman step of an accepted fix, which is left to the
@@ -258,7 +296,7 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
         dt = fix.t - track.t
         track._predict(dt)
         z = np.array([fix.e, fix.n, *fix.velocity])
-        track._update(z, track._robust(z, track._measurement_noise(fix)))
+        track._update(z, track._robust(z, track._measurement_noise(fix), fix.t))
         track._accepted(fix, dt)
         return
     config = tracks[0]._config
@@ -284,6 +322,10 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
         rho = multipath_weight(
             p[:, :2, :2] + r[:, :2, :2], z[:, :2] - x[:, :2], config.track_multipath
         )
+        for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
+            if track._doubt(float(rho[i]), fix.t):
+                p[i, :2, :2] += MULTIPATH_SIGMA**2 * np.eye(2)
+                rho[i] = 0.0
         r[:, 0, 0] += rho * MULTIPATH_SIGMA**2
         r[:, 1, 1] += rho * MULTIPATH_SIGMA**2
     k = np.linalg.solve(p + r, p).transpose(0, 2, 1)

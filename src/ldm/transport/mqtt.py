@@ -397,7 +397,9 @@ class Transport:
                 ok = info.rc == mqtt.MQTT_ERR_SUCCESS or (
                     qos > 0 and info.rc == mqtt.MQTT_ERR_NO_CONN  # paho re-sends it
                 )
-                if ok and qos > 0:
+                if info.rc == mqtt.MQTT_ERR_SUCCESS and qos > 0:
+                    # (one taken as the connection dropped is re-sent by paho, but its
+                    # receipt raises instead of telling; the lost connection is seen anyway)
                     self._unacked.append((info, time.time()))
                     self._drop_acked()
                 return info if ok else None

@@ -86,6 +86,22 @@ def multipath_weight(s: np.ndarray, y: np.ndarray, share: float) -> np.ndarray:
     return out
 
 
+def _multipath_weight_one(
+    a: float, b: float, c: float, y0: float, y1: float, share: float
+) -> float:
+    """`multipath_weight` of one fix in floats (S = [[a, b], [b, c]], y = (y0, y1)): numpy's
+    call overhead on 2 x 2 arrays would double a track's step."""
+    wide = MULTIPATH_SIGMA**2
+
+    def log_density(a: float, c: float) -> float:
+        det = a * c - b * b
+        return -0.5 * (c * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) / det - 0.5 * math.log(det)
+
+    narrow = math.log(1.0 - share) + log_density(a, c)
+    broad = math.log(share) + log_density(a + wide, c + wide)
+    return 1.0 / (1.0 + math.exp(min(max(narrow - broad, -700.0), 700.0)))
+
+
 class TrackUpdate(enum.Enum):
     """What a fix did to its track."""
 
@@ -182,8 +198,15 @@ class Track:
         share = self._config.track_multipath
         if share <= 0.0 or self._config.mode != "default":
             return r
-        s = (self._P[:2, :2] + r[:2, :2])[None]
-        rho = float(multipath_weight(s, (z[:2] - self._x[:2])[None], share)[0])
+        p = self._P
+        rho = _multipath_weight_one(
+            float(p[0, 0] + r[0, 0]),
+            float(p[0, 1] + r[0, 1]),
+            float(p[1, 1] + r[1, 1]),
+            float(z[0] - self._x[0]),
+            float(z[1] - self._x[1]),
+            share,
+        )
         if self._doubt(rho, t):
             self._P[:2, :2] += MULTIPATH_SIGMA**2 * np.eye(2)
             return r

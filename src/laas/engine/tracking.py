@@ -102,6 +102,11 @@ def _multipath_weight_one(
     return 1.0 / (1.0 + math.exp(min(max(narrow - broad, -700.0), 700.0)))
 
 
+def _weighs_multipath(config: EngineConfig) -> bool:
+    """Whether the tracks weigh multipath: default mode with track_multipath > 0."""
+    return config.track_multipath > 0.0 and config.mode == "default"
+
+
 class TrackUpdate(enum.Enum):
     """What a fix did to its track."""
 
@@ -187,33 +192,36 @@ class Track:
         if outcome is TrackUpdate.ACCEPTED and self._config.kalman:
             dt = fix.t - self.t
             self._predict(dt)
-            z = np.array([fix.e, fix.n, *fix.velocity])
-            self._update(z, self._robust(z, self._measurement_noise(fix), fix.t))
+            self._step_update(fix)
             self._accepted(fix, dt)
         return outcome
 
-    def _robust(self, z: np.ndarray, r: np.ndarray, t: float) -> np.ndarray:
-        """R with the position's variance raised by rho s_mp^2, or the track doubted
-        (module docstring)."""
-        share = self._config.track_multipath
-        if share <= 0.0 or self._config.mode != "default":
-            return r
-        p = self._P
-        rho = _multipath_weight_one(
-            float(p[0, 0] + r[0, 0]),
-            float(p[0, 1] + r[0, 1]),
-            float(p[1, 1] + r[1, 1]),
-            float(z[0] - self._x[0]),
-            float(z[1] - self._x[1]),
-            share,
-        )
+    def _step_update(self, fix: Fix) -> None:
+        """The update of one predicted step, multipath weighed in default mode."""
+        z = np.array([fix.e, fix.n, *fix.velocity])
+        r = self._measurement_noise(fix)
+        if _weighs_multipath(self._config):
+            p = self._P
+            rho = _multipath_weight_one(
+                float(p[0, 0] + r[0, 0]),
+                float(p[0, 1] + r[0, 1]),
+                float(p[1, 1] + r[1, 1]),
+                float(z[0] - self._x[0]),
+                float(z[1] - self._x[1]),
+                self._config.track_multipath,
+            )
+            self._weigh(rho, fix.t, p, r)
+        self._update(z, r)
+
+    def _weigh(self, rho: float, t: float, p: np.ndarray, r: np.ndarray) -> None:
+        """In place on this step's predicted P and its R: the position's variance in R
+        raised by rho s_mp^2, or, the track doubted, P's by s_mp^2 (module docstring)."""
         if self._doubt(rho, t):
-            self._P[:2, :2] += MULTIPATH_SIGMA**2 * np.eye(2)
-            return r
-        r = r.copy()
-        r[0, 0] += rho * MULTIPATH_SIGMA**2
-        r[1, 1] += rho * MULTIPATH_SIGMA**2
-        return r
+            p[0, 0] += MULTIPATH_SIGMA**2
+            p[1, 1] += MULTIPATH_SIGMA**2
+        else:
+            r[0, 0] += rho * MULTIPATH_SIGMA**2
+            r[1, 1] += rho * MULTIPATH_SIGMA**2
 
     def _doubt(self, rho: float, t: float) -> bool:
         """Whether a fix of weight rho at time t ends a disagreement long enough to doubt
@@ -318,8 +326,7 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
         track, fix = tracks[0], fixes[0]
         dt = fix.t - track.t
         track._predict(dt)
-        z = np.array([fix.e, fix.n, *fix.velocity])
-        track._update(z, track._robust(z, track._measurement_noise(fix), fix.t))
+        track._step_update(fix)
         track._accepted(fix, dt)
         return
     config = tracks[0]._config
@@ -341,16 +348,12 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     # Update (Track._update): K = P S^-1, x += K (z - x), Joseph's form of P.
     z = np.array([[fx.e, fx.n, *fx.velocity] for fx in fixes])
     r = np.stack([tr._measurement_noise(fx) for tr, fx in zip(tracks, fixes, strict=True)])
-    if config.track_multipath > 0.0 and config.mode == "default":  # Track._robust
+    if _weighs_multipath(config):  # Track._step_update, the weights of all at once
         rho = multipath_weight(
             p[:, :2, :2] + r[:, :2, :2], z[:, :2] - x[:, :2], config.track_multipath
         )
         for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
-            if track._doubt(float(rho[i]), fix.t):
-                p[i, :2, :2] += MULTIPATH_SIGMA**2 * np.eye(2)
-                rho[i] = 0.0
-        r[:, 0, 0] += rho * MULTIPATH_SIGMA**2
-        r[:, 1, 1] += rho * MULTIPATH_SIGMA**2
+            track._weigh(float(rho[i]), fix.t, p[i], r[i])
     k = np.linalg.solve(p + r, p).transpose(0, 2, 1)
     x = x + np.einsum("bij,bj->bi", k, z - x)
     i_k = np.eye(4) - k

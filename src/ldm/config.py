@@ -368,6 +368,9 @@ class ParticipantConfig(_Settings):
     broker: BrokerSettings
     client_id: str | None = None
     max_age: float = Field(default=2.0, gt=0)
+    """A reply older than this (s, by its send time) is dropped as stale. A request not
+    answered 2 x max_age + 1 s after it was submitted fails with `RequestTimeout`,
+    re-sends included."""
     data_qos: int | None = Field(default=None, ge=0, le=2)
     """QoS of input messages; None takes the core's value from the session grant."""
     service_keys: dict[str, str] = Field(default_factory=dict)

@@ -139,16 +139,20 @@ def test_pinned_participants_act_only_on_what_is_signed(
         assert session.rotations == 0
         assert session.request({"n": 2}) == {"echo": {"n": 2}}
         # A forged empty list: the core puts its own back, which alice still trusts.
-        forged = ServiceList(t=time.time() + 10, services=[])
-        mallory.publish("ldm/services", forged.model_dump_json().encode(), retain=True)
+        forged = ServiceList(t=time.time() + 10, services=[]).model_dump_json().encode()
+        mallory.publish("ldm/services", forged, retain=True)
         assert wait_for(lambda: core.stats.repaired_list >= 1, 5)  # after the empty payload
         assert [s.public_key for s in core.services] == [provider.key.public]
-        assert wait_for(
-            lambda: mallory.seen and mallory.seen[-1].payload == core.catalog.list_payload, 5
-        )
+
+        def repaired() -> bool:  # the core's list came after the forged one
+            payloads = [m.payload for m in mallory.seen]
+            return forged in payloads and payloads[-1] == core.catalog.list_payload
+
+        # The repair is counted before the core's list reaches the broker: wait for it.
+        assert wait_for(repaired, 5)
         fresh = _Raw(broker.url, "ldm/services")
         assert wait_for(lambda: bool(fresh.seen), 5)
-        assert fresh.seen[-1].payload == core.catalog.list_payload
+        assert fresh.seen[0].payload == core.catalog.list_payload  # what the broker retained
         fresh.transport.stop()
         assert [s.name for s in alice.services()] == ["echo"]
         # A participant pinning another identity for echo does not trust it.

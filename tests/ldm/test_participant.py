@@ -4,13 +4,22 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
 
-from ldm import ConnectError, Core, Participant, Provider, Request, SessionError
+from ldm import (
+    ConnectError,
+    Core,
+    Participant,
+    Provider,
+    Request,
+    RequestTimeout,
+    SessionError,
+)
 from ldm.local.brokers import MosquittoBroker, wait_for
 from ldm.local.pytest_plugin import need_mosquitto
 from ldm.transport.mqtt import Message
@@ -21,7 +30,8 @@ from .deployment import ECHO, Sniffer, has_service
 
 @dataclass
 class Holding:
-    """Echoes, except the first input marked ``hold``: that one gets no reply."""
+    """Echoes, except the first input marked ``hold`` and every input marked ``never``:
+    those get no reply."""
 
     requests: list[Request] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -30,7 +40,9 @@ class Holding:
         with self.lock:
             self.requests.append(request)
             first = sum(r.payload == request.payload for r in self.requests) == 1
-        return None if request.payload.get("hold") and first else {"echo": request.payload}
+        if request.payload.get("never") or (request.payload.get("hold") and first):
+            return None
+        return {"echo": request.payload}
 
     def seen(self, payload: dict[str, Any]) -> list[Request]:
         with self.lock:
@@ -144,5 +156,30 @@ def test_a_resent_request_gets_a_new_correlation_id_and_qos_1_holds_on_every_hop
         assert {m.qos for m in data} == {1}
         c_ids = [Envelope.model_validate_json(m.payload).c for m in data if "/up/data/" in m.topic]
         assert len(c_ids) == len(set(c_ids))  # no correlation id was sent twice
+    finally:
+        p.stop()
+
+
+@pytest.mark.mosquitto
+def test_a_re_sent_request_times_out_as_long_after_its_submission_as_any_other(
+    cluster: Cluster,
+) -> None:
+    """A new grant re-sends what waits, but the timeout (2 x max_age + 1 s = 3 s)
+    counts from the submission: before, each re-send started it again, and a flooded
+    participant's inputs failed only after 10 s (CI of stop 31)."""
+    p = Participant.create(cluster.broker.url, client_id="tim", max_age=1.0).start(timeout=5)
+    try:
+        assert wait_for(has_service(p, "echo"), 5)
+        session = p.open("echo")
+        start = time.monotonic()
+        never = session.submit({"never": 1})
+        time.sleep(2.0)
+        before = session.grant.session
+        p.reopen(session)
+        assert wait_for(lambda: session.grant.session != before, 2), "no regrant"
+        assert wait_for(lambda: len(cluster.service.seen({"never": 1})) == 2, 2), "not re-sent"
+        with pytest.raises(RequestTimeout, match="within 3 s"):
+            never.result(5)
+        assert time.monotonic() - start < 4.0  # 3 s and a tick; the re-send's would be 5
     finally:
         p.stop()

@@ -115,7 +115,8 @@ class _Pending:
     future: Future[Payload]
     keys: _Keys
     plaintext: bytes
-    sent: float
+    sent: float  # the send time of its envelope: a re-send after a new grant renews it
+    submitted: float = 0.0  # when the application submitted it: its timeout counts from here
     disconnects: int = 0  # the transport's count when sent
     envelope: Envelope | None = None  # as sent: a retry sends it again unchanged
     tried: float = 0.0  # when it was last sent (or sent again)
@@ -182,9 +183,8 @@ class Session:
             )
             return future
         c = _token()
-        pending = _Pending(
-            Future(), self._keys, json.dumps(payload, separators=(",", ":")).encode(), 0.0
-        )
+        plaintext = json.dumps(payload, separators=(",", ":")).encode()
+        pending = _Pending(Future(), self._keys, plaintext, 0.0, submitted=time.time())
         with self._lock:
             self._pending[c] = pending
         self._send(c, pending)
@@ -353,10 +353,13 @@ class Session:
                 self.retries += 1
 
     def expire(self, now: float, limit: float, disconnects: int) -> None:
-        """Fail the requests older than `limit` s (RequestTimeout), and ask the
-        participant to open the session again: the core may have lost it."""
+        """Fail the requests submitted more than `limit` s ago (RequestTimeout), and ask
+        the participant to open the session again: the core may have lost it.
+
+        The limit counts from the submission, not from the last send: a re-send after a
+        new grant does not give an input a second lifetime."""
         with self._lock:
-            old = [(c, p) for c, p in self._pending.items() if now - p.sent > limit]
+            old = [(c, p) for c, p in self._pending.items() if now - p.submitted > limit]
             for c, _ in old:
                 del self._pending[c]
         if old:  # the core may have lost or replaced the session without a word: ask again

@@ -7,8 +7,9 @@ writes or compares the record in `tests/data/reference-answers.npz`:
     .venv/bin/python -m tests.reference_answers --record   # after a deliberate change
     .venv/bin/python -m tests.reference_answers            # compare, print the worst
 
-Cases: both bundled scenarios in both modes, the `ci` suite's dev seeds at sigma_pos 1
-(default mode), and two dev seeds of each real-map family. Recording again is a decision
+Cases: both bundled scenarios in both modes, the first `FAMILY_SEEDS` of the `ci` suite's
+dev seeds of each random-road family at sigma_pos 1 (default mode), and two dev seeds of
+each real-map family. Recording again is a decision
 that the answers *should* change (a model change), never a way to make a speed change pass.
 """
 
@@ -34,6 +35,10 @@ from laas.sim.suite import engine_config, get_suite, sigma_vel_for
 
 RECORD = Path(__file__).parent / "data" / "reference-answers.npz"
 TOLERANCE_M = 1e-6
+# Dev seeds per random-road family: four of each family's cases (16 in all) find a
+# changed answer as the ci suite's eight did, and the test command stays under its 15
+# minutes (every case is answered twice there; `tests/test_accuracy.py` scores all eight).
+FAMILY_SEEDS = 4
 
 
 @dataclass(frozen=True)
@@ -65,7 +70,7 @@ def _makers() -> dict[str, Callable[[], Case]]:
         modes: tuple[Mode, ...] = ("default", "paper")
         for mode in modes:
             out[f"{name}/{mode}"] = functools.partial(scenario_case, name, mode)
-    runs = [(f, s) for f, seeds in get_suite("ci").cases for s in seeds]
+    runs = [(f, s) for f, seeds in get_suite("ci").cases for s in seeds[:FAMILY_SEEDS]]
     runs += [(m, s) for m in MAP_FAMILIES for s in (0, 1)]
     for family, seed in runs:
         out[f"{family}/{seed}"] = functools.partial(family_case, family, seed)

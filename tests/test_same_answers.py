@@ -4,8 +4,8 @@ One at a time (`Engine.process`), the engine gives its record (`tests/reference_
 exactly. In batches as the live worker takes them (`laas.engine.batches`), the common
 error takes one measurement update per batch, so a user's answer also sees the evidence
 of the fixes that came with it: the answers may differ, but they must stay as good. The
-bounds, on the recorded cases (the `ci` suite's dev seeds, both bundled scenarios, two
-seeds of each real-map family):
+bounds, on the recorded cases (the first four of the `ci` suite's dev seeds of each
+random-road family, both bundled scenarios, two seeds of each real-map family):
 
 - paper mode has no common error: its batched answers are its record, exactly;
 - default mode: at least 99 % of all answers on the same lane as one at a time (93 % in

@@ -8,8 +8,8 @@ import pyproj
 import pytest
 import shapely
 
-_mosquitto_tests: set[str] = set()
 _mosquitto_skipped: set[str] = set()
+_NO_MOSQUITTO = "mosquitto is not installed"  # the reason `need_mosquitto` skips with
 
 
 def pytest_report_header() -> list[str]:
@@ -20,12 +20,11 @@ def pytest_report_header() -> list[str]:
     ]
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    _mosquitto_tests.update(i.nodeid for i in items if i.get_closest_marker("mosquitto"))
-
-
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
-    if report.skipped and report.nodeid in _mosquitto_tests:
+    """Count a test skipped for want of Mosquitto, marked `mosquitto` or not (a test may
+    call `need_mosquitto` itself); the reason is the third item of a skip's report."""
+    longrepr = report.longrepr
+    if report.skipped and isinstance(longrepr, tuple) and _NO_MOSQUITTO in str(longrepr[2]):
         _mosquitto_skipped.add(report.nodeid)
 
 

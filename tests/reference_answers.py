@@ -9,8 +9,8 @@ writes or compares the record in `tests/data/reference-answers.npz`:
 
 Cases: both bundled scenarios in both modes, the first `FAMILY_SEEDS` of the `ci` suite's
 dev seeds of each random-road family at sigma_pos 1 (default mode), and two dev seeds of
-each real-map family. Recording again is a decision
-that the answers *should* change (a model change), never a way to make a speed change pass.
+each real-map family. Recording again is a decision that the answers *should* change (a
+model change), never a way to make a speed change pass.
 """
 
 from __future__ import annotations
@@ -35,9 +35,10 @@ from laas.sim.suite import engine_config, get_suite, sigma_vel_for
 
 RECORD = Path(__file__).parent / "data" / "reference-answers.npz"
 TOLERANCE_M = 1e-6
-# Dev seeds per random-road family: four of each family's cases (16 in all) find a
-# changed answer as the ci suite's eight did, and the test command stays under its 15
-# minutes (every case is answered twice there; `tests/test_accuracy.py` scores all eight).
+# Dev seeds per random-road family (16 cases of four families): a change of the engine's
+# answers shows in most cases, and `tests/test_same_answers.py` answers each case twice,
+# so more would cost the test command its 15 minutes (`tests/test_accuracy.py` scores the
+# whole ci suite).
 FAMILY_SEEDS = 4
 
 

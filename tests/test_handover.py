@@ -18,11 +18,16 @@ from laas.sim.scenario import hamburg_scenario, simulate
 CONFIG = EngineConfig(sigma_pos=1.0, sigma_vel=0.25, sigma_heading=0.05)
 
 
-def test_two_areas_that_share_their_evidence_hold_the_pooled_posterior() -> None:
+@pytest.mark.parametrize("memory", [None, 2.0])
+def test_two_areas_that_share_their_evidence_hold_the_pooled_posterior(
+    memory: float | None,
+) -> None:
     """Two areas, each fed half of the fixes, that pass each other their own evidence
-    every round hold what one area fed all of them holds (no evidence counted twice)."""
+    every round hold what one area fed all of them holds (no evidence counted twice),
+    also when evidence fades (a memory of 2 s: each round's evidence counts e^-0.5 of
+    the round before's)."""
     rng = np.random.default_rng(0)
-    a, b, pooled = (CommonError(np.zeros(2), 10.0, 0.1, 0.3) for _ in range(3))
+    a, b, pooled = (CommonError(np.zeros(2), 10.0, 0.1, 0.3, None, memory) for _ in range(3))
     a.record()
     b.record()
     truth = np.array([1.5, -0.7])
@@ -70,7 +75,9 @@ def test_a_user_handed_to_another_engine_is_answered_as_by_one(hamburg_map: HdMa
     assert handed.probability == pytest.approx(one.probability, abs=0.02)
     assert abs(handed.latitude - one.latitude) < 3e-6  # ~0.3 m
     assert abs(handed.longitude - one.longitude) < 5e-6
-    assert fresh.accuracy > 2 * one.accuracy  # what the hand-over saves
+    # what the hand-over saves: 10.5 m against 5.6 m (one car's along-road error is
+    # known only from its turns, and that knowledge fades over evidence_memory)
+    assert fresh.accuracy > 1.5 * one.accuracy
     with pytest.raises(HandoverError, match="version"):
         user_from_bytes(zlib.compress(b'{"v": 0}'))
     with pytest.raises(HandoverError, match=r"malformed|array"):

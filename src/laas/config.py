@@ -166,6 +166,16 @@ class EngineConfig(Settings):
             "along a gently curving road"
         ),
     )
+    evidence_memory: Positive | None = Field(
+        default=30.0,
+        description=(
+            "default mode: how long (s) evidence about the common error is remembered: "
+            "older evidence fades, log p <- e^(-dt / tau) log p + (1 - e^(-dt / tau)) "
+            "log p0, so a receiver's lasting error counts about tau / evidence_interval "
+            "times, not without bound; None keeps all evidence, and so does an area that "
+            "doubts its participants (max_user_evidence)"
+        ),
+    )
     bias_area: Positive = Field(
         default=2_000.0, description="size of the area that shares one common error, m"
     )

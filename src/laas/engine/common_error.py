@@ -18,6 +18,23 @@ says so (and with it every answer's along-road accuracy). `UGrid` is the 1-D gri
 u = n . b shared by every direction n, and `u_moments` gives the posterior of u
 (and its moments of b) per cell of that grid.
 
+Evidence fades (`memory` tau, `EngineConfig.evidence_memory`). A receiver's own error
+is lasting: a bias of up to a metre across the road stays with it for minutes. Each of its
+fixes is counted as news, so a bias that happens to match the difference of two lane
+widths makes the wrong lanes ever more likely the longer the user stays: the group
+lock-in (issue 22; on dev edge/20 one cyclist's receiver, 0.84 m off, matched the 1.04 m
+between the shifts of the bicycle and the driving lanes, and the first 20 s of two users
+placed everyone one lane over at 0.9 and more, where the later users, who fit the true
+lanes, could not undo it). Old evidence therefore fades, before each prediction,
+
+    log p(b) <- lam log p(b) + (1 - lam) log p0(b),   lam = e^(-dt / tau)
+
+(p0 the prior): evidence of age a counts with weight e^(-a / tau), and a lasting error
+counts about tau / evidence_interval times, not without bound. tau is 30 s: ten
+evidence intervals, long enough for a user on a curve or a turn to carry the along-road
+error into the next minute, short enough that what the first users' errors said is
+re-judged by those who come after.
+
 A participant that lies (issue 11). Pooled in full, the evidence of one user who
 reports a false path (or whose receiver is broken) pulls b towards its false value by
 about its share of all the evidence, however far off it is. The robust posterior (on
@@ -70,7 +87,8 @@ is the prior times both workers' evidence. An area that `record`s keeps its own 
 evidence E = sum_k log c_k(n_k . b) since it last gave it away (`shared`); the other
 worker adds it to its own log p (`take_shared`), and what it takes it never shares on,
 so no evidence echoes back and none counts twice (tests/test_handover.py holds two
-sharing areas to one fed everything).
+sharing areas to one fed everything). With `memory`, E fades as log p does, so what a
+neighbour takes is the evidence as it counts here by then.
 
 With two users and nobody else, either may be the liar: the posterior then leans to one
 of them where the Gaussian pool split the difference. The bound is per participant: a
@@ -131,6 +149,7 @@ class CommonError:
         drift: float,
         resolution: float,
         cap: float | None = None,
+        memory: float | None = None,
     ) -> None:
         self.centre = centre.copy()
         half = 3.5 * prior_sigma  # wide enough that no ridge of likely values is clipped
@@ -139,6 +158,10 @@ class CommonError:
         n = self._axis.size
         sq = self._axis**2
         self._log = -0.5 * (sq[:, None] + sq[None, :]) / prior_sigma**2  # (n, n): [east, north]
+        # a robust area keeps all its evidence: its records judge each participant on
+        # all it said, and log(1 + S) holds only beside the whole of it
+        self.memory = memory if cap is None else None
+        self._prior_log = self._log.copy() if self.memory is not None else None
         self._win = (0, n, 0, n)
         self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
         # the u-grid cells of n . b over the window, per normal n, while the window stays
@@ -204,7 +227,10 @@ class CommonError:
             self._win = new
 
     def predict(self, t: float) -> None:
-        """Blur the grid by the random walk accumulated since the last call."""
+        """Fade old evidence (`memory`), then blur the grid by the random walk
+        accumulated since the last call."""
+        if self.t is not None and t > self.t and self._prior_log is not None:
+            self._fade(t - self.t)
         if self.t is not None and t > self.t:
             self._pending_var += self._drift_var * (t - self.t)
             a = self._pending_var / (2.0 * self._res**2)  # a walk of +-res steps, prob a each
@@ -220,6 +246,24 @@ class CommonError:
                 self._moments()
         if self.t is None or t > self.t:
             self.t = t
+
+    def _fade(self, dt: float) -> None:
+        """Evidence fades with age: log p <- lam log p + (1 - lam) log p0, lam = e^(-dt / tau),
+        over the whole grid. The window keeps log p only where it is within `_DROP` of the
+        maximum and a floor of 2 `_DROP` below it elsewhere; the floor fades like the
+        rest, so cells the window dropped come back as the evidence that dropped them
+        fades (a little sooner than their own log p would: the side of doubt)."""
+        assert self._prior_log is not None and self.memory is not None
+        lam = math.exp(-dt / self.memory)
+        self._log *= lam
+        self._log += (1.0 - lam) * self._prior_log
+        if self._own is not None:
+            self._own *= lam  # what is shared has faded as it has here
+        self._log -= self._log.max()
+        n = self._axis.size
+        self._win = (0, n, 0, n)
+        self._shrink()
+        self._moments()
 
     def weights_and_cells(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(window weights p(b), the u-grid cell of n . b for each window cell)."""
@@ -595,12 +639,14 @@ class CommonErrorField:
         drift: float,
         resolution: float,
         cap: float | None = None,
+        memory: float | None = None,
     ) -> None:
         self.size = size
         self._prior = prior_sigma
         self._drift = drift
         self._resolution = resolution
         self._cap = cap
+        self._memory = memory
         self.recording = False  # new areas keep their own evidence (`CommonError.record`)
         self.areas: list[CommonError] = []
         self._cells: dict[tuple[int, int], list[CommonError]] = {}
@@ -635,7 +681,9 @@ class CommonErrorField:
                     if dist <= best_d:
                         best, best_d = area, dist
         if best is None:
-            best = CommonError(xy, self._prior, self._drift, self._resolution, self._cap)
+            best = CommonError(
+                xy, self._prior, self._drift, self._resolution, self._cap, self._memory
+            )
             if self.recording:
                 best.record()
             self.areas.append(best)

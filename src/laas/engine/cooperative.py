@@ -135,6 +135,7 @@ class CooperativeLaneFilter(LaneFilter):
             config.bias_drift,
             config.bias_resolution,
             config.max_user_evidence,
+            config.evidence_memory,
         )
         self._lanes: dict[str, _Lanes] = {}
         self._traits: dict[str, LaneTraits] = {}  # per road element

@@ -74,3 +74,25 @@ def test_a_robust_area_keeps_its_evidence() -> None:
     area.predict(60.0)
     assert area.memory is None
     assert np.allclose(area.P, before)
+
+
+def test_evidence_shared_late_counts_as_faded_as_if_it_had_come_here() -> None:
+    """A neighbour's evidence of time 0, taken at 30 s, counts as this area's own evidence
+    of time 0 would by then (and, taken by an area that has no time yet, from time 0)."""
+    here = _told(TAU)
+    here.predict(TAU)
+    source = CommonError(np.zeros(2), PRIOR, 0.0, 0.3, None, TAU)
+    source.record()
+    source.predict(0.0)
+    source.update(np.array([1.0, 0.0]), -0.5 * ((source.u.values - 2.0) / 0.5) ** 2)
+    shared = source.shared()
+    assert shared is not None and shared[2] == 0.0
+    late = CommonError(np.zeros(2), PRIOR, 0.0, 0.3, None, TAU)
+    late.predict(TAU)
+    late.take_shared(*shared)
+    fresh = CommonError(np.zeros(2), PRIOR, 0.0, 0.3, None, TAU)
+    fresh.take_shared(*shared)
+    fresh.predict(TAU)
+    for area in (late, fresh):
+        assert np.allclose(area.b, here.b, atol=0.02)
+        assert np.allclose(area.P, here.P, rtol=0.05)

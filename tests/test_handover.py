@@ -118,3 +118,24 @@ def test_a_worker_refuses_a_hand_over_it_cannot_open_and_answers_the_fix(
     )
     assert all("segment" in r for r in replies), replies
     assert service.stats.handover_refused == 2 and service.stats.handed_in == 0
+
+
+def test_shared_areas_keep_the_time_their_evidence_is_faded_to() -> None:
+    from laas.engine.handover import AreaState, areas_from_bytes, areas_to_bytes
+
+    log = np.arange(6.0).reshape(2, 3)
+    states = [
+        AreaState((1.0, 2.0), 99, (4, 6, 7, 10), log, 12.5),
+        AreaState((3.0, 4.0), 99, (0, 2, 0, 3), log, None),
+    ]
+    back = areas_from_bytes(areas_to_bytes(states))
+    assert [(a.centre, a.window, a.t) for a in back] == [
+        ((1.0, 2.0), (4, 6, 7, 10), 12.5),
+        ((3.0, 4.0), (0, 2, 0, 3), None),
+    ]
+    assert np.array_equal(back[0].log, log)
+    text = zlib.decompress(areas_to_bytes(states[:1]))
+    with pytest.raises(HandoverError, match="malformed"):
+        areas_from_bytes(zlib.compress(text.replace(b'"t":12.5', b'"t":"soon"')))
+    with pytest.raises(HandoverError, match="finite"):
+        areas_from_bytes(zlib.compress(text.replace(b'"t":12.5', b'"t":NaN')))

@@ -32,7 +32,7 @@ lanes, could not undo it). Old evidence therefore fades, before each prediction,
 (p0 the prior): evidence of age a counts with weight e^(-a / tau), and a lasting error
 counts about tau / evidence_interval times, not without bound. tau is 30 s: ten
 evidence intervals, long enough for a user on a curve or a turn to carry the along-road
-error into the next minute, short enough that what the first users' errors said is
+error into the next half minute, short enough that what the first users' errors said is
 re-judged by those who come after.
 
 A participant that lies (issue 11). Pooled in full, the evidence of one user who
@@ -523,20 +523,23 @@ class CommonError:
         self._ls[i0:i1, j0:j1] = total
         self._l[i0:i1, j0:j1] = fresh
 
-    def shared(self) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    def shared(self) -> tuple[tuple[int, int, int, int], np.ndarray, float | None] | None:
         """The evidence this area's own users gave since the last call, for the
         neighbouring workers that serve its place (`take_shared`): on the grid window
-        that holds mass now, sum_k log c_k(n_k . b) less its maximum; None if there was
-        none (or the area keeps no record, `record`)."""
+        that holds mass now, sum_k log c_k(n_k . b) less its maximum, faded to the time
+        of the area's last prediction, and that time; None if there was none (or the
+        area keeps no record, `record`)."""
         if self._own is None or not self._own_any:
             return None
         i0, i1, j0, j1 = self._win
         out = self._own[i0:i1, j0:j1] - self._own[i0:i1, j0:j1].max()
         self._own.fill(0.0)
         self._own_any = False
-        return self._win, out.astype(np.float32)
+        return self._win, out.astype(np.float32), self.t
 
-    def take_shared(self, win: tuple[int, int, int, int], evidence: np.ndarray) -> None:
+    def take_shared(
+        self, win: tuple[int, int, int, int], evidence: np.ndarray, t: float | None = None
+    ) -> None:
         """A neighbour's `shared` evidence, folded in as if its users' fixes had come
         here: log p(b) += sum_k log c_k(n_k . b) on its window. Its users are not ours
         (each fix goes to one worker), so nothing counts twice, and what we take is not
@@ -552,13 +555,20 @@ class CommonError:
                         0                                   elsewhere   (then normalised)
 
         It comes a share interval late, so the random walk has blurred it a little less
-        than ours: a second or so, far below a cell."""
+        than ours: a second or so, far below a cell. With a memory, evidence faded to time
+        `t` is faded here to ours (or ours to its, if it is newer), so that it counts as
+        it would had its fixes come here."""
         n = self._axis.size
         i0, i1, j0, j1 = win
         if not (0 <= i0 < i1 <= n and 0 <= j0 < j1 <= n) or evidence.shape != (i1 - i0, j1 - j0):
             raise ValueError(f"shared evidence of window {win} does not fit a grid of {n}")
         if not np.isfinite(evidence).all():
             raise ValueError("shared evidence holds NaN or infinite values")
+        if t is not None and self.memory is not None:
+            if self.t is None or t > self.t:
+                self.predict(t)
+            elif t < self.t:
+                evidence = evidence * math.exp(-(self.t - t) / self.memory)
         self._log[i0:i1, j0:j1] += np.maximum(evidence - evidence.max(), -_DROP) + _DROP
         w0, w1, v0, v1 = self._win
         self._win = (min(w0, i0), max(w1, i1), min(v0, j0), max(v1, j1))

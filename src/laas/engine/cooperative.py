@@ -195,7 +195,7 @@ class CooperativeLaneFilter(LaneFilter):
             if x0 <= e <= x1 and y0 <= n <= y1:
                 found = area.shared()
                 if found is not None:
-                    out.append(AreaState((e, n), area.u.size, found[0], found[1]))
+                    out.append(AreaState((e, n), area.u.size, *found))
         return out
 
     def import_areas(
@@ -213,7 +213,7 @@ class CooperativeLaneFilter(LaneFilter):
             if state.cells != area.u.size:
                 continue  # another prior: not the same grid
             try:
-                area.take_shared(state.window, state.log)
+                area.take_shared(state.window, state.log, state.t)
             except ValueError as exc:
                 raise HandoverError(f"hand-over from {source}: {exc}") from None
             taken += 1

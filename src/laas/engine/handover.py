@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 import zlib
 from dataclasses import dataclass
 from typing import Any
@@ -78,13 +79,15 @@ class UserState:
 @dataclass(frozen=True)
 class AreaState:
     """One area's own common-error estimate (`CommonError.shared`): its centre (UTM, m),
-    the size of its u-grid (`cells`: the same prior gives the same grids), and log p over
-    the window (i0, i1, j0, j1) of its grid of b."""
+    the size of its u-grid (`cells`: the same prior gives the same grids), log p over
+    the window (i0, i1, j0, j1) of its grid of b, and the time (s) its evidence is faded
+    to (None: not faded, or unknown)."""
 
     centre: tuple[float, float]
     cells: int
     window: tuple[int, int, int, int]
     log: np.ndarray  # (i1 - i0, j1 - j0)
+    t: float | None = None
 
 
 def _array(a: np.ndarray) -> dict[str, Any]:
@@ -166,6 +169,7 @@ def areas_to_bytes(states: list[AreaState]) -> bytes:
                     "cells": a.cells,
                     "window": list(a.window),
                     "log": _array(a.log),
+                    "t": a.t,
                 }
                 for a in states
             ],
@@ -183,12 +187,16 @@ def areas_from_bytes(data: bytes) -> list[AreaState]:
             log = _unarray(a["log"], "an area's log p")
             if log.shape != (i1 - i0, j1 - j0):
                 raise HandoverError("hand-over: an area's log p does not fit its window")
+            t = a.get("t")
+            if t is not None and not math.isfinite(float(t)):
+                raise HandoverError("hand-over: an area's time is not a finite number")
             out.append(
                 AreaState(
                     (float(a["centre"][0]), float(a["centre"][1])),
                     int(a["cells"]),
                     (i0, i1, j0, j1),
                     log,
+                    None if t is None else float(t),
                 )
             )
     except (KeyError, TypeError, ValueError) as exc:

@@ -11,7 +11,14 @@ import pytest
 from laas.config import EngineConfig
 from laas.engine import Engine
 from laas.engine.common_error import CommonError
-from laas.engine.handover import HandoverError, user_from_bytes, user_to_bytes
+from laas.engine.handover import (
+    AreaState,
+    HandoverError,
+    areas_from_bytes,
+    areas_to_bytes,
+    user_from_bytes,
+    user_to_bytes,
+)
 from laas.map.hdmap import HdMap
 from laas.sim.scenario import hamburg_scenario, simulate
 
@@ -121,8 +128,6 @@ def test_a_worker_refuses_a_hand_over_it_cannot_open_and_answers_the_fix(
 
 
 def test_shared_areas_keep_the_time_their_evidence_is_faded_to() -> None:
-    from laas.engine.handover import AreaState, areas_from_bytes, areas_to_bytes
-
     log = np.arange(6.0).reshape(2, 3)
     states = [
         AreaState((1.0, 2.0), 99, (4, 6, 7, 10), log, 12.5),

@@ -70,9 +70,10 @@ def test_default_mode_learns_the_common_error_across_two_road_directions() -> No
         errors.append(area.b - bias)
         widest.append(float(np.sqrt(np.linalg.eigvalsh(area.P)[-1])))
     # Along the first straight only the cross-road part is known; after the corner, both.
-    on_r1 = sum(1 for sid, _ in route if sid == "r-0")
-    on_r2 = len(route) - sum(1 for sid, _ in route if sid == "r-2")
-    assert widest[on_r1 - 2] > 9.0  # r-0 taught only its own cross-road part
+    sids = [sid for sid, _ in route]
+    on_r1, on_r2 = sids.index("r-1"), sids.index("r-2")
+    assert widest[on_r1 - 2] > 9.0  # r-0 taught only its own cross-road part (its last
+    # fix, at the corner, starts to teach the rest)
     assert np.hypot(*errors[-1]) < 0.5
     assert min(widest[on_r2:]) < 0.7
     # r-2 teaches only its own cross-road part; what r-0 and the corner taught about the

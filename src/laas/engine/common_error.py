@@ -22,10 +22,10 @@ Evidence fades (`memory` tau, `EngineConfig.evidence_memory`). A receiver's own 
 is lasting: a bias of up to a metre across the road stays with it for minutes. Each of its
 fixes is counted as news, so a bias that happens to match the difference of two lane
 widths makes the wrong lanes ever more likely the longer the user stays: the group
-lock-in (issue 22; on dev edge/20 one cyclist's receiver, 0.84 m off, matched the 1.04 m
-between the shifts of the bicycle and the driving lanes, and the first 20 s of two users
-placed everyone one lane over at 0.9 and more, where the later users, who fit the true
-lanes, could not undo it). Old evidence therefore fades, before each prediction,
+lock-in (issue 22; on dev edge/20 one cyclist's receiver, 0.83 m off, matched the 1.04 m
+between the shifts of the bicycle and the driving lanes, and the first 20 s placed
+everyone one lane over at 0.9 and more, where the later users, who fit the true lanes,
+could not undo it; `scripts/lock_in.py`). Old evidence therefore fades, before each prediction,
 
     log p(b) <- lam log p(b) + (1 - lam) log p0(b),   lam = e^(-dt / tau)
 
@@ -228,10 +228,12 @@ class CommonError:
 
     def predict(self, t: float) -> None:
         """Fade old evidence (`memory`), then blur the grid by the random walk
-        accumulated since the last call."""
-        if self.t is not None and t > self.t and self._prior_log is not None:
-            self._fade(t - self.t)
+        accumulated since the last call; the moments once, after both."""
         if self.t is not None and t > self.t:
+            moved = False
+            if self._prior_log is not None:
+                self._fade(t - self.t)
+                moved = True
             self._pending_var += self._drift_var * (t - self.t)
             a = self._pending_var / (2.0 * self._res**2)  # a walk of +-res steps, prob a each
             if a >= _BLUR_STEP:
@@ -243,27 +245,39 @@ class CommonError:
                 p = _walk(np.exp(self._log[i0:i1, j0:j1]), a)
                 self._log[i0:i1, j0:j1] = np.log(np.maximum(p, 1e-300))
                 self._win = (i0, i1, j0, j1)
+                moved = True
+            if moved:
                 self._moments()
         if self.t is None or t > self.t:
             self.t = t
 
     def _fade(self, dt: float) -> None:
-        """Evidence fades with age: log p <- lam log p + (1 - lam) log p0, lam = e^(-dt / tau),
-        over the whole grid. The window keeps log p only where it is within `_DROP` of the
-        maximum and a floor of 2 `_DROP` below it elsewhere; the floor fades like the
-        rest, so cells the window dropped come back as the evidence that dropped them
-        fades (a little sooner than their own log p would: the side of doubt)."""
+        """Evidence fades with age: log p <- lam log p + (1 - lam) log p0, lam = e^(-dt / tau).
+        Outside the window log p is kept only as a floor, 2 `_DROP` below the maximum; the
+        floor fades like the rest, so cells the window dropped come back as the evidence
+        that dropped them fades (a little sooner than their own log p would: the side of
+        doubt). A floor cell ends at most -2 _DROP lam below the window's new maximum M
+        (log p0 <= 0), so while M + 2 _DROP lam >= _DROP none comes back, and the window
+        alone is faded (the per-batch case: lam = 0.97 at dt = 1 s); else the whole grid."""
         assert self._prior_log is not None and self.memory is not None
         lam = math.exp(-dt / self.memory)
-        self._log *= lam
-        self._log += (1.0 - lam) * self._prior_log
         if self._own is not None:
             self._own *= lam  # what is shared has faded as it has here
-        self._log -= self._log.max()
+        i0, i1, j0, j1 = self._win
+        sub = self._log[i0:i1, j0:j1]
+        sub *= lam
+        sub += (1.0 - lam) * self._prior_log[i0:i1, j0:j1]
+        top = float(sub.max())
         n = self._axis.size
-        self._win = (0, n, 0, n)
+        if self._win == (0, n, 0, n) or top + 2.0 * _DROP * lam >= _DROP:
+            sub -= top
+        else:
+            outside = np.ones_like(self._log, dtype=bool)
+            outside[i0:i1, j0:j1] = False
+            self._log[outside] = -2.0 * _DROP * lam + (1.0 - lam) * self._prior_log[outside]
+            self._log -= self._log.max()
+            self._win = (0, n, 0, n)
         self._shrink()
-        self._moments()
 
     def weights_and_cells(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(window weights p(b), the u-grid cell of n . b for each window cell)."""

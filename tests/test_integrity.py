@@ -12,7 +12,7 @@ import pytest
 from laas.engine.calibration import KNOTS, calibrate
 from laas.models import CorrectedPosition
 from laas.sim.family import MAP_FAMILIES, build_case
-from laas.sim.integrity import IntegrityTally, lane_holds
+from laas.sim.integrity import IntegrityTally, lane_holds, run_interval
 from laas.sim.scenario import Trace
 from laas.sim.score import score
 from laas.sim.suite import simulate_case
@@ -101,6 +101,20 @@ def test_the_tally_counts_confident_and_wrong_answers_and_the_calibration_error(
     assert [both.cross_1, both.cross_2] == pytest.approx([1 / 3, 2 / 3])
     assert [both.along_1, both.along_2] == pytest.approx([1 / 3, 2 / 3])
     assert math.isnan(IntegrityTally().summary().ece)
+
+
+def test_the_interval_over_runs_is_wide_when_one_run_holds_the_wrong_answers() -> None:
+    """The same pooled share (1 %), spread over every run or held by one run of 20: the
+    first is as sure as its runs agree, the second could be 0 on another sample."""
+    spread = [IntegrityTally(answers=100, wrong_90=1) for _ in range(20)]
+    one = [IntegrityTally(answers=100, wrong_90=20 if k == 0 else 0) for k in range(20)]
+    assert IntegrityTally.total(spread).summary().wrong_90 == pytest.approx(0.01)
+    assert IntegrityTally.total(one).summary().wrong_90 == pytest.approx(0.01)
+    assert run_interval(spread) == pytest.approx((0.01, 0.01))
+    lo, hi = run_interval(one)
+    assert lo == 0.0  # a third of the resamples lack the one run: (19/20)^20 = 0.36
+    assert 0.02 <= hi <= 0.04  # its copies in a resample: Binomial(20, 1/20), 95th percentile 3
+    assert all(math.isnan(x) for x in run_interval([IntegrityTally()]))
 
 
 def test_the_calibration_map_is_monotone_and_keeps_probabilities_probabilities() -> None:

@@ -8,6 +8,12 @@ like its position. Per run, counts that add up over runs (so a suite pools its a
   error is  ECE = sum_b (n_b / N) |mean p_b - right_b / n_b|;
 - **confident and wrong** (hazardously misleading information): answers that say
   p >= 0.9 (and p >= 0.99) and whose lane is wrong, as a share of all answers;
+- **how sure that share is**: a suite's runs are a sample of the roads and crowds it
+  stands for, and confident-and-wrong answers come in runs (a group one lane over for a
+  minute), not one by one. `run_interval` therefore resamples whole runs (a bootstrap
+  over runs, `RESAMPLES` times, with a fixed seed) and gives the 5th and 95th
+  percentile of the pooled share: a 90 % interval for the share on unseen runs of
+  the same families;
 - **consistency of the accuracies**: the share of answers whose error across the road is
   within once and twice the reported ``accuracy_cross`` (and along the road,
   ``accuracy_along``). For an honest Gaussian 1-sigma these are 68 % and 95 %.
@@ -24,7 +30,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -39,6 +45,7 @@ __all__ = [
     "IntegrityTally",
     "lane_holds",
     "lane_right",
+    "run_interval",
     "same_lane",
 ]
 
@@ -49,6 +56,9 @@ END_TOLERANCE = 1.0
 """m: a true position this far past either end of the answered element still counts as in
 it (elements meet end to end; the true position of a user on the seam may lie on either)."""
 
+
+RESAMPLES = 2000
+"""Bootstrap resamples of the runs behind `run_interval`."""
 
 CHAIN_REACH = 30.0
 """m of road between the answered element and the truth's (the elements wholly between
@@ -243,3 +253,26 @@ class Integrity:
         right = " ".join(f"{r:5.2f}" for _, r, _ in cells)
         count = " ".join(f"{c:5d}" if c < 100_000 else f"{c / 1000:4.0f}k" for _, _, c in cells)
         return f"said  {said}\nright {right}\nn     {count}"
+
+
+def run_interval(
+    tallies: Sequence[IntegrityTally], level: float = 0.9, resamples: int = RESAMPLES
+) -> tuple[float, float]:
+    """A `level` interval of the pooled confident-and-wrong share (said p >= 0.9 and
+    wrong, over all answers) by resampling whole runs with replacement: with w_r and n_r
+    run r's counts and R a resample, the share is sum_R w_r / sum_R n_r. (nan, nan)
+    without answers.
+
+    >>> run_interval([IntegrityTally(answers=100, wrong_90=5)] * 4)
+    (0.05, 0.05)
+    """
+    wrong = np.array([t.wrong_90 for t in tallies], dtype=float)
+    answers = np.array([t.answers for t in tallies], dtype=float)
+    if answers.sum() <= 0.0:
+        return math.nan, math.nan
+    pick = np.random.default_rng(0).integers(0, len(tallies), (resamples, len(tallies)))
+    total = answers[pick].sum(axis=1)
+    share = np.divide(wrong[pick].sum(axis=1), total, out=np.zeros(resamples), where=total > 0)
+    tail = (1.0 - level) / 2.0 * 100.0
+    lo, hi = np.percentile(share, [tail, 100.0 - tail])
+    return float(lo), float(hi)

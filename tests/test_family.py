@@ -384,3 +384,36 @@ def test_the_smoke_suite_scores_every_run_three_ways() -> None:
 def test_evaluate_refuses_an_unknown_suite(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["evaluate", "--suite", "nope"]) == 2
     assert "heldout" in capsys.readouterr().err
+
+
+def test_a_suite_cut_down_runs_only_what_was_asked_and_the_calibration_moves_no_lane() -> None:
+    suite = get_suite("smoke").subset(families=["urban"], seeds=1)
+    assert suite.jobs() == [("urban", 1, 1.0)]
+    raw = suite.subset(calibrated=False)
+    assert "uncalibrated" in raw.description and suite.calibrated and not raw.calibrated
+    (calibrated,) = run_suite(suite, workers=1)
+    (uncalibrated,) = run_suite(raw, workers=1)
+    said, plain = calibrated.methods["default"], uncalibrated.methods["default"]
+    # the calibration map changes what is said of a lane, never the lane or the position
+    assert said.accuracy == plain.accuracy and said.aed == plain.aed
+    assert sum(said.integrity.prob) != pytest.approx(sum(plain.integrity.prob), abs=1e-6)
+    assert calibrated.methods["paper"] == dataclasses.replace(
+        uncalibrated.methods["paper"], seconds=calibrated.methods["paper"].seconds
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--suite", "dev", "--families", "urban,town"], "no family town"),
+        (["--suite", "ci", "--sigma-pos", "4"], "not 4"),
+        (["--suite", "ci", "--seeds", "0"], "1 or more"),
+        (["--seeds", "3"], "give --suite too"),
+        (["--uncalibrated"], "--uncalibrated"),
+    ],
+)
+def test_evaluate_refuses_a_cut_it_cannot_make(
+    args: list[str], named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["evaluate", *args]) == 2
+    assert named in capsys.readouterr().err

@@ -109,6 +109,10 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 
     if a.suite is not None:
         return _evaluate_suite(a)
+    cut = [f"--{n}" for n in ("families", "seeds", "sigma_pos") if getattr(a, n) is not None]
+    if cut or a.uncalibrated:
+        flags = ", ".join(cut + (["--uncalibrated"] if a.uncalibrated else [])).replace("_", "-")
+        raise ConfigError(f"{flags}: these cut a suite down; give --suite too (dev, for example)")
     scenario = get_scenario(a.scenario)
     modes: tuple[Mode, ...] = ("paper", "default") if a.mode == "both" else (a.mode,)
     rows = evaluate(
@@ -141,7 +145,12 @@ def _evaluate_suite(a: argparse.Namespace) -> int:
         worst_run,
     )
 
-    suite = get_suite(a.suite)
+    suite = get_suite(a.suite).subset(
+        families=None if a.families is None else [f.strip() for f in a.families.split(",")],
+        seeds=a.seeds,
+        sigmas=a.sigma_pos,
+        calibrated=False if a.uncalibrated else None,
+    )
     t0 = time.perf_counter()
     rows = run_suite(suite, workers=a.workers, progress=progress_printer("evaluate", "runs"))
     seconds = time.perf_counter() - t0
@@ -795,6 +804,24 @@ def _add_offline(sub: Any) -> None:
         "--suite",
         help="run a suite of drawn scenarios instead: dev, heldout, maps-dev, maps-heldout, "
         "ci or smoke (docs/evaluation.md; --scenario, --runs and --mode do not apply)",
+    )
+    p.add_argument(
+        "--families", metavar="A,B", help="with --suite: only these families (comma-separated)"
+    )
+    p.add_argument(
+        "--seeds", type=int, metavar="N", help="with --suite: only the first N seeds of each"
+    )
+    p.add_argument(
+        "--sigma-pos",
+        type=float,
+        action="append",
+        metavar="S",
+        help="with --suite: only this sigma_pos (repeat for more)",
+    )
+    p.add_argument(
+        "--uncalibrated",
+        action="store_true",
+        help="with --suite: report default mode's posterior without the calibration map",
     )
     p.add_argument("--runs", type=int, default=20, help="seeded runs per configuration")
     p.add_argument("--mode", choices=["both", "default", "paper"], default="both")

@@ -80,10 +80,63 @@ class Suite(BaseModel):
     description: str
     cases: tuple[tuple[str, tuple[int, ...]], ...]
     sigmas: tuple[float, ...] = (1.0, 2.5)
+    calibrated: bool = True  # default mode reports its lane probability calibrated
 
     def jobs(self) -> list[tuple[str, int, float]]:
         """(family, seed, sigma_pos) of every run, in report order."""
         return [(f, s, sp) for f, seeds in self.cases for s in seeds for sp in self.sigmas]
+
+    def subset(
+        self,
+        *,
+        families: Sequence[str] | None = None,
+        seeds: int | None = None,
+        sigmas: Sequence[float] | None = None,
+        calibrated: bool | None = None,
+    ) -> Suite:
+        """The suite cut down for a quicker look: only `families`, the first `seeds`
+        seeds of each, only `sigmas`; `calibrated=False` reports default mode's raw
+        posterior. A name or a sigma_pos that the suite does not have is refused."""
+        cases = self.cases
+        if families is not None:
+            known = [f for f, _ in cases]
+            unknown = sorted(set(families) - set(known))
+            if unknown:
+                raise ConfigError(
+                    f"suite {self.name!r} has no family {', '.join(unknown)}; "
+                    f"choose from {', '.join(known)}"
+                )
+            cases = tuple((f, s) for f, s in cases if f in families)
+        if seeds is not None:
+            if seeds < 1:
+                raise ConfigError(f"seeds must be 1 or more, not {seeds}")
+            cases = tuple((f, s[:seeds]) for f, s in cases)
+        picked = self.sigmas
+        if sigmas is not None:
+            unknown_s = sorted(set(sigmas) - set(self.sigmas))
+            if unknown_s:
+                raise ConfigError(
+                    f"suite {self.name!r} runs sigma_pos {', '.join(f'{x:g}' for x in self.sigmas)}"
+                    f", not {', '.join(f'{x:g}' for x in unknown_s)}"
+                )
+            picked = tuple(x for x in self.sigmas if x in sigmas)
+        subset = cases != self.cases or picked != self.sigmas
+        cal = self.calibrated if calibrated is None else calibrated
+        what = []
+        if subset:
+            sig = ", ".join(f"{x:g}" for x in picked)
+            what.append(f"{sum(len(s) for _, s in cases)} scenarios x sigma_pos {sig}")
+        if not cal:
+            what.append("default mode uncalibrated")
+        description = self.description + (f" [subset: {'; '.join(what)}]" if what else "")
+        return self.model_copy(
+            update={
+                "cases": cases,
+                "sigmas": picked,
+                "calibrated": cal,
+                "description": description,
+            }
+        )
 
 
 _DEV_SEEDS = tuple(range(0, 40))
@@ -267,9 +320,14 @@ class SuiteRow:
 Answerer = Callable[[HdMap, Trace, EngineConfig], list[CorrectedPosition | None]]
 
 
-def _answerers(sigma_pos: float) -> dict[Method, tuple[Answerer, EngineConfig]]:
+def _answerers(
+    sigma_pos: float, calibrated: bool = True
+) -> dict[Method, tuple[Answerer, EngineConfig]]:
+    default = engine_config("default", sigma_pos)
+    if not calibrated:
+        default = default.model_copy(update={"calibrated": False})
     return {
-        "default": (answer_trace, engine_config("default", sigma_pos)),
+        "default": (answer_trace, default),
         "paper": (answer_trace, engine_config("paper", sigma_pos)),
         "oracle": (oracle_answers, engine_config("default", sigma_pos)),
     }
@@ -283,12 +341,12 @@ def simulate_case(family: str, seed: int, sigma_pos: float) -> tuple[FamilyCase,
     return case, trace
 
 
-def run_case(family: str, seed: int, sigma_pos: float) -> SuiteRow:
+def run_case(family: str, seed: int, sigma_pos: float, calibrated: bool = True) -> SuiteRow:
     """Build, simulate and answer one run three ways (see the module docstring)."""
     case, trace = simulate_case(family, seed, sigma_pos)
     methods: dict[str, MethodScore] = {}
     raw = math.nan
-    for method, (answer, config) in _answerers(sigma_pos).items():
+    for method, (answer, config) in _answerers(sigma_pos, calibrated).items():
         t0 = time.perf_counter()
         try:
             result = score(case.hdmap, trace, answer(case.hdmap, trace, config))
@@ -313,7 +371,7 @@ def run_case(family: str, seed: int, sigma_pos: float) -> SuiteRow:
     )
 
 
-def _run(job: tuple[str, int, float]) -> SuiteRow:
+def _run(job: tuple[str, int, float, bool]) -> SuiteRow:
     return run_case(*job)
 
 
@@ -321,7 +379,7 @@ def run_suite(
     suite: Suite, *, workers: int | None = None, progress: Progress | None = None
 ) -> list[SuiteRow]:
     """Every run of the suite on a pool of `workers` processes; rows in `suite.jobs()` order."""
-    jobs = suite.jobs()
+    jobs = [(f, s, sp, suite.calibrated) for f, s, sp in suite.jobs()]
     workers = workers or min(os.cpu_count() or 1, 4)
     rows: dict[tuple[str, int, float], SuiteRow] = {}
 
@@ -338,7 +396,7 @@ def run_suite(
         rows[(row.family, row.seed, row.sigma_pos)] = row
         if progress is not None:
             progress(k, len(jobs))
-    return [rows[job] for job in jobs]
+    return [rows[job] for job in suite.jobs()]
 
 
 def suite_plots(row: SuiteRow, out: Path) -> list[Path]:

@@ -136,6 +136,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _evaluate_suite(a: argparse.Namespace) -> int:
     import time
 
+    from laas.sim.foreign import default_foreign_dir
     from laas.sim.suite import (
         format_report,
         get_suite,
@@ -145,7 +146,12 @@ def _evaluate_suite(a: argparse.Namespace) -> int:
         worst_run,
     )
 
-    suite = get_suite(a.suite).subset(
+    if a.foreign is not None and a.suite != "foreign":
+        raise ConfigError("--foreign names the set of --suite foreign; give --suite foreign too")
+    foreign = Path(a.foreign) if a.foreign is not None else default_foreign_dir()
+    if a.suite == "foreign" and a.plot:
+        raise ConfigError("--plot draws simulated runs; the foreign suite's roads are recorded")
+    suite = get_suite(a.suite, foreign).subset(
         families=None if a.families is None else [f.strip() for f in a.families.split(",")],
         seeds=a.seeds,
         sigmas=a.sigma_pos,
@@ -803,7 +809,14 @@ def _add_offline(sub: Any) -> None:
     p.add_argument(
         "--suite",
         help="run a suite of drawn scenarios instead: dev, heldout, maps-dev, maps-heldout, "
-        "ci or smoke (docs/evaluation.md; --scenario, --runs and --mode do not apply)",
+        "ci or smoke; or foreign, the recorded roads of --foreign DIR (docs/evaluation.md; "
+        "--scenario, --runs and --mode do not apply)",
+    )
+    p.add_argument(
+        "--foreign",
+        metavar="DIR",
+        help="with --suite foreign: the set's folder, sigma<S>/<road>/ with map.geojson, "
+        "trace.jsonl and truth.jsonl (default: ../shared/foreign-roads where present)",
     )
     p.add_argument(
         "--families", metavar="A,B", help="with --suite: only these families (comma-separated)"

@@ -52,8 +52,9 @@ simulated exactly as before. `laas.sim.roam` draws such paths on any map.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -65,6 +66,7 @@ __all__ = [
     "PATH_JOIN_GAP",
     "PATH_SUCCESSOR_GAP",
     "ErrorModel",
+    "Fixes",
     "Lie",
     "PathStep",
     "Scenario",
@@ -341,6 +343,13 @@ class SimulatedFix:
     receiver_e: float = 0.0  # the receiver's own constant error, m east
     receiver_n: float = 0.0  # and m north
     lie: bool = False  # the measurement reports a false path (`UserPlan.lie`)
+
+
+class Fixes(Protocol):
+    """What answering and scoring a run read of it: its fixes, each with its truth."""
+
+    @property
+    def fixes(self) -> Sequence[SimulatedFix]: ...
 
 
 @dataclass(frozen=True)

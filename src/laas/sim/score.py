@@ -32,7 +32,8 @@ from laas.engine.batches import MAX_BATCH, in_batches
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.sim.integrity import IntegrityTally, lane_right
-from laas.sim.scenario import SimulatedFix, Trace
+from laas.sim.plan import Fixes
+from laas.sim.scenario import SimulatedFix
 
 __all__ = ["OBSERVABLE_SPAN", "RunResult", "answer_trace", "judge", "run_trace", "score"]
 
@@ -63,7 +64,7 @@ class RunResult:
 
 
 def answer_trace(
-    hdmap: HdMap, trace: Trace, config: EngineConfig | None = None, max_batch: int = MAX_BATCH
+    hdmap: HdMap, trace: Fixes, config: EngineConfig | None = None, max_batch: int = MAX_BATCH
 ) -> list[CorrectedPosition | None]:
     """A fresh engine's answer to every fix of a simulated trace, in order, given to it
     in batches as the live worker takes them (`laas.engine.batches`; `max_batch` 1: one
@@ -76,7 +77,7 @@ def answer_trace(
     return out
 
 
-def run_trace(hdmap: HdMap, trace: Trace, config: EngineConfig) -> RunResult:
+def run_trace(hdmap: HdMap, trace: Fixes, config: EngineConfig) -> RunResult:
     """Feed a simulated trace to a fresh engine and score its answers."""
     return score(hdmap, trace, answer_trace(hdmap, trace, config))
 
@@ -94,8 +95,16 @@ def judge(
     return e - fix.true_e, n - fix.true_n, by_id, right
 
 
-def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> RunResult:
-    """Score answers (one per fix of the trace, None where none came) against the truth."""
+def score(
+    hdmap: HdMap,
+    trace: Fixes,
+    answers: Sequence[CorrectedPosition | None],
+    *,
+    integrity_by_id: bool = False,
+) -> RunResult:
+    """Score answers (one per fix of the trace, None where none came) against the truth;
+    the integrity figures count a lane right by geometry, or with `integrity_by_id` only
+    when its (segment, lane) is the true one."""
     proj = hdmap.projection
     n = len(trace.fixes)
     if len(answers) != n:
@@ -137,7 +146,8 @@ def score(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None
     cross = np.abs(e_ok[:, 0] * t_ok[:, 1] - e_ok[:, 1] * t_ok[:, 0])
     obs = observable[answered]
     tally = IntegrityTally()
-    for p, right in zip(prob[answered], ok[answered], strict=True):
+    judged = ok_id if integrity_by_id else ok
+    for p, right in zip(prob[answered], judged[answered], strict=True):
         tally.add_answer(float(p), bool(right))
     rated = ~np.isnan(sigma[answered, 0])
     tally.add_errors(

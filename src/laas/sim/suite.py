@@ -39,7 +39,9 @@ from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress
 from laas.sim.family import FAMILIES, MAP_FAMILIES, FamilyCase, build_case
+from laas.sim.foreign import FOREIGN_FAMILY, ForeignRoad, find_roads, load_road
 from laas.sim.integrity import Integrity, IntegrityTally, run_interval
+from laas.sim.plan import Fixes
 from laas.sim.scenario import Trace, simulate_with
 from laas.sim.score import RunResult, answer_trace, score
 
@@ -52,6 +54,7 @@ __all__ = [
     "SuiteRow",
     "Summary",
     "engine_config",
+    "foreign_suite",
     "format_report",
     "get_suite",
     "oracle_answers",
@@ -81,9 +84,18 @@ class Suite(BaseModel):
     cases: tuple[tuple[str, tuple[int, ...]], ...]
     sigmas: tuple[float, ...] = (1.0, 2.5)
     calibrated: bool = True  # default mode reports its lane probability calibrated
+    # A recorded set (`laas.sim.foreign`): its folder, and its runs, each road recorded at
+    # one sigma_pos; its integrity figures count a lane right by (segment, lane) id.
+    source: str | None = None
+    runs: tuple[tuple[str, int, float], ...] | None = None
 
     def jobs(self) -> list[tuple[str, int, float]]:
         """(family, seed, sigma_pos) of every run, in report order."""
+        if self.runs is not None:
+            seeds = {f: set(s) for f, s in self.cases}
+            return [
+                (f, s, sp) for f, s, sp in self.runs if s in seeds.get(f, ()) and sp in self.sigmas
+            ]
         return [(f, s, sp) for f, seeds in self.cases for s in seeds for sp in self.sigmas]
 
     def subset(
@@ -178,13 +190,38 @@ SUITES: dict[str, Suite] = {
 """The suites by name."""
 
 
-def get_suite(name: str) -> Suite:
-    """A suite by name; the error lists the names there are."""
+def foreign_suite(root: Path) -> Suite:
+    """The roads of a foreign set (`laas.sim.foreign`) as a suite: one family, its roads
+    as seeds, each at the sigma_pos it was recorded with."""
+    roads = find_roads(root)
+    return Suite(
+        name="foreign",
+        description=(
+            f"roads from another generator ({root}; integrity scored by (segment, lane) id, "
+            "as the set scores it; never tune on these)"
+        ),
+        cases=((FOREIGN_FAMILY, tuple(r.road for r in roads)),),
+        sigmas=tuple(sorted({r.sigma_pos for r in roads})),
+        source=str(root),
+        runs=tuple((FOREIGN_FAMILY, r.road, r.sigma_pos) for r in roads),
+    )
+
+
+def get_suite(name: str, foreign: Path | None = None) -> Suite:
+    """A suite by name (`foreign`: the set in the folder `foreign`); the error lists the
+    names there are."""
+    if name == "foreign":
+        if foreign is None:
+            raise ConfigError(
+                "suite 'foreign' needs the set's folder: give --foreign DIR "
+                "(../shared/foreign-roads was not found)"
+            )
+        return foreign_suite(foreign)
     try:
         return SUITES[name]
     except KeyError:
         raise ConfigError(
-            f"unknown suite {name!r}; choose one of {', '.join(sorted(SUITES))}"
+            f"unknown suite {name!r}; choose one of {', '.join(sorted([*SUITES, 'foreign']))}"
         ) from None
 
 
@@ -200,7 +237,7 @@ def engine_config(mode: Mode, sigma_pos: float) -> EngineConfig:
 
 
 def oracle_answers(
-    hdmap: HdMap, trace: Trace, config: EngineConfig
+    hdmap: HdMap, trace: Fixes, config: EngineConfig
 ) -> list[CorrectedPosition | None]:
     """Each fix less the true common error, Kalman-filtered per user, on the nearest lane."""
     proj = hdmap.projection
@@ -317,7 +354,7 @@ class SuiteRow:
         return asdict(self)
 
 
-Answerer = Callable[[HdMap, Trace, EngineConfig], list[CorrectedPosition | None]]
+Answerer = Callable[[HdMap, Fixes, EngineConfig], list[CorrectedPosition | None]]
 
 
 def _answerers(
@@ -341,15 +378,32 @@ def simulate_case(family: str, seed: int, sigma_pos: float) -> tuple[FamilyCase,
     return case, trace
 
 
-def run_case(family: str, seed: int, sigma_pos: float, calibrated: bool = True) -> SuiteRow:
-    """Build, simulate and answer one run three ways (see the module docstring)."""
-    case, trace = simulate_case(family, seed, sigma_pos)
+def run_case(
+    family: str, seed: int, sigma_pos: float, calibrated: bool = True, source: str | None = None
+) -> SuiteRow:
+    """Build, simulate and answer one run three ways (see the module docstring); with
+    `source`, read road `seed` of that foreign set instead."""
+    hdmap: HdMap
+    fixes: Fixes
+    if source is not None:
+        hdmap, foreign = load_road(ForeignRoad(seed, sigma_pos, _road_folder(source, seed)))
+        fixes = foreign
+        users = len({f.user for f in foreign.fixes})
+        lanes = len(foreign.meta.get("lanes", ()))  # type: ignore[arg-type]
+        t = [f.measurement.timestamp for f in foreign.fixes]
+        duration = (max(t) - min(t)) / 1000.0
+    else:
+        case, trace = simulate_case(family, seed, sigma_pos)
+        hdmap, fixes = case.hdmap, trace
+        users, lanes, duration = len(case.scenario.users), case.lanes, case.scenario.duration
     methods: dict[str, MethodScore] = {}
     raw = math.nan
     for method, (answer, config) in _answerers(sigma_pos, calibrated).items():
         t0 = time.perf_counter()
         try:
-            result = score(case.hdmap, trace, answer(case.hdmap, trace, config))
+            result = score(
+                hdmap, fixes, answer(hdmap, fixes, config), integrity_by_id=source is not None
+            )
         except Exception as exc:  # a failure is a finding: report it, run the rest
             methods[method] = MethodScore.failed(
                 f"{type(exc).__name__}: {exc}", time.perf_counter() - t0
@@ -362,16 +416,23 @@ def run_case(family: str, seed: int, sigma_pos: float, calibrated: bool = True) 
         seed=seed,
         sigma_pos=sigma_pos,
         sigma_vel=sigma_vel_for(sigma_pos),
-        users=len(case.scenario.users),
-        fixes=len(trace.fixes),
-        lanes=case.lanes,
-        duration=case.scenario.duration,
+        users=users,
+        fixes=len(fixes.fixes),
+        lanes=lanes,
+        duration=duration,
         raw_aed=raw,
         methods=methods,
     )
 
 
-def _run(job: tuple[str, int, float, bool]) -> SuiteRow:
+def _road_folder(source: str, road: int) -> Path:
+    for found in find_roads(Path(source)):
+        if found.road == road:
+            return found.path
+    raise ConfigError(f"{source}: no road {road}")
+
+
+def _run(job: tuple[str, int, float, bool, str | None]) -> SuiteRow:
     return run_case(*job)
 
 
@@ -379,7 +440,7 @@ def run_suite(
     suite: Suite, *, workers: int | None = None, progress: Progress | None = None
 ) -> list[SuiteRow]:
     """Every run of the suite on a pool of `workers` processes; rows in `suite.jobs()` order."""
-    jobs = [(f, s, sp, suite.calibrated) for f, s, sp in suite.jobs()]
+    jobs = [(f, s, sp, suite.calibrated, suite.source) for f, s, sp in suite.jobs()]
     workers = workers or min(os.cpu_count() or 1, 4)
     rows: dict[tuple[str, int, float], SuiteRow] = {}
 

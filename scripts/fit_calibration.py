@@ -4,9 +4,9 @@
 
 Runs default mode, uncalibrated (`EngineConfig(calibrated=False)`), on the dev suite's
 first `--seeds` seeds of every family at both of its sigma_pos (the held-out suite is never
-run here), and pairs every answer's P(l*) with whether its lane holds the true position
-(`laas.sim.integrity.lane_right`); `--pairs F` keeps them in F (NumPy .npz) and reads them
-from there when F exists, so a refit need not answer the runs again.
+run here), in batches as the live worker takes them, and pairs every answer's probability
+with whether its (segment, lane) is the true one; `--pairs F` keeps them in F (NumPy .npz)
+and reads them from there when F exists, so a refit need not answer the runs again.
 
 The map g is the isotonic regression of "right" on P(l*) (`scipy.optimize.
 isotonic_regression`, pool adjacent violators), taken as the lower quartile over
@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import isotonic_regression
 
-from laas.engine import Engine
-from laas.sim.integrity import IntegrityTally, lane_right
+from laas.sim.integrity import IntegrityTally
+from laas.sim.score import answer_trace
 from laas.sim.suite import engine_config, get_suite, simulate_case
 
 _STEP = 0.005  # a knot is kept where g has moved this much since the last one
@@ -44,24 +44,17 @@ _GRID = np.linspace(0.0, 1.0, 2001)  # where the resampled fits are compared
 
 
 def _pairs(job: tuple[str, int, float]) -> list[tuple[float, bool]]:
-    """(P(l*), right) of every answer of one dev run, the engine uncalibrated."""
+    """(P, right) of every answer of one dev run, the engine uncalibrated, answered in
+    batches as the live worker takes them: right when its (segment, lane) is the true one,
+    what its probability speaks of."""
     family, seed, sigma_pos = job
     case, trace = simulate_case(family, seed, sigma_pos)
     config = engine_config("default", sigma_pos).model_copy(update={"calibrated": False})
-    engine = Engine(case.hdmap, config)
     out: list[tuple[float, bool]] = []
-    for fix in trace.fixes:
-        answer = engine.process(fix.user, fix.measurement)
+    for fix, answer in zip(trace.fixes, answer_trace(case.hdmap, trace, config), strict=True):
         if answer is None:
             continue
-        right = lane_right(
-            case.hdmap,
-            (answer.segment, answer.lane),
-            (fix.segment, fix.lane),
-            fix.true_e,
-            fix.true_n,
-        )
-        out.append((answer.probability, right))
+        out.append((answer.probability, answer.segment == fix.segment and answer.lane == fix.lane))
     return out
 
 

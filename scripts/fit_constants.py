@@ -33,7 +33,6 @@ from laas.sim.suite import engine_config, get_suite, simulate_case
 CANDIDATES: dict[str, tuple[float, ...]] = {
     "sigma_receiver": (0.25, 0.5, 1.0),
     "lane_change_rate": (0.005, 0.02, 0.05, 0.1),
-    "filtered_inflation": (1.0, 2.0, 4.0, 8.0),
     "evidence_interval": (0.2, 1.0, 3.0, 6.0),
     "motion_memory": (1.0, 3.0, 10.0, 30.0),
 }

@@ -100,13 +100,6 @@ class EngineConfig(Settings):
             "not announce"
         ),
     )
-    filtered_inflation: Annotated[float, Field(ge=1.0, allow_inf_nan=False)] = Field(
-        default=4.0,
-        description=(
-            "default mode, with the Kalman filter on: how much the filtered lateral variance "
-            "is inflated as lane evidence, since successive filtered fixes share their errors"
-        ),
-    )
     sigma_receiver: NonNegative = Field(
         default=0.5,
         description=(
@@ -117,8 +110,9 @@ class EngineConfig(Settings):
     evidence_interval: Positive = Field(
         default=3.0,
         description=(
-            "default mode: a receiver's errors persist from fix to fix, so its lane evidence "
-            "counts at most once per this many seconds, however often it reports"
+            "default mode: how long (s) a receiver's lasting errors (its place in the lane, "
+            "its bias, its multipath) persist: the fixes within it share them, so their lane "
+            "evidence counts as fewer independent fixes (laas.engine.cooperative)"
         ),
     )
     motion_memory: Positive = Field(

@@ -3,16 +3,21 @@
 Each fix is p_i = x_i + b + e_i: the true position, the error b that every receiver of
 the area shares (`CommonError`, a grid posterior), and the receiver's own error. A user
 on lane l of a road with unit normal n (to the right) and lane centres o_l lies at
-lateral offset o_l, so its filtered position's offset d_i, measured with b = 0, is
+lateral offset o_l, so its fix's offset d_i, measured with b = 0, is
 
-    d_i = o_l + u + e,   u = n . b,   e ~ N(0, s^2),   s^2 = s_lane^2 + s_rx^2 + k n' P_i n
+    d_i = o_l + u + e,   u = n . b,   e ~ N(0, s^2),   s^2 = s_lane^2 + s_rx^2 + s_fix^2
 
-with P_i the covariance of the user's Kalman-filtered position, s_rx the receiver's own
-lasting error (bias, multipath; `sigma_receiver`) and k > 1 because successive filtered
-fixes share their errors (`filtered_inflation`). d_i is taken in the element's frame at
-the fix itself, the same for every b; beyond the element's ends, where that frame is
-only the straight extension of its last tangent, at the fix less the estimate b^ of b,
-d_i = d(p_i - b^) + n . b^.
+with s_fix the fix's own 1-sigma (its stated accuracy, else `sigma_pos`) and s_rx the
+receiver's own lasting error (bias, multipath; `sigma_receiver`). The evidence is the fix
+itself, not the Kalman-filtered position: the filter holds the velocity to the receiver's
+course, and a course need not show a lane change (a smoothed or map-matched course, a
+phone's fused bearing), so the filtered position then creeps over to the new lane for
+several seconds while the lanes' evidence says "old lane" at p 1.00; a fix's noise is its
+own and shows the change the moment it is made. (The filtered position still places the
+answer, and its velocity still announces lane changes, `transition`.) d_i is taken in the
+element's frame at the fix itself, the same for every b; beyond the element's ends, where
+that frame is only the straight extension of its last tangent, at the fix less the
+estimate b^ of b, d_i = d(p_i - b^) + n . b^.
 
 Which lane a user is on and what b is explain the same fixes: moving b by a lane width
 and every user by one lane fits them as well. They are therefore estimated together,
@@ -265,7 +270,8 @@ class CooperativeLaneFilter(LaneFilter):
         position = np.array([track.position for track in tracks])
         velocity = np.array([track.velocity for track in tracks])
         dt = np.array([track.dt for track in tracks])
-        # The road's frame at the fix p: there the offset measured with b = 0 is
+        # The road's frame at the fix p (the fix itself, not the filtered position:
+        # module docstring): there the offset measured with b = 0 is
         # d = d(p), for every b alike, so a curve, whose normal turns under the user,
         # makes the common error along the road observable. A fix is up to 15 m off,
         # though, and beyond the element's ends its frame is only the straight extension
@@ -274,10 +280,11 @@ class CooperativeLaneFilter(LaneFilter):
         # estimate of the common error, q = p - b^, and linear about q, d = d(q) + n . b^.
         areas = [self._errors.at(p) for p in position]
         b_hat = np.array([area.b for area in areas])
-        frame = segment.frame_many(position)
+        fixed = np.array([(track.last_fix.e, track.last_fix.n) for track in tracks])
+        frame = segment.frame_many(fixed)
         beyond = (frame[:, 0] < 0.0) | (frame[:, 0] > segment.length)
         if beyond.any():
-            frame[beyond] = segment.frame_many(position[beyond] - b_hat[beyond])
+            frame[beyond] = segment.frame_many(fixed[beyond] - b_hat[beyond])
         tangent = segment.tangent_many(frame[:, 0])
         normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
         d = frame[:, 1] + np.where(beyond, _dot(normal, b_hat), 0.0)
@@ -311,19 +318,27 @@ class CooperativeLaneFilter(LaneFilter):
         # lasting trait of the user, not news at every fix: it counts once per
         # tau = motion_memory seconds.
         memory = np.minimum(1.0, dt / c.motion_memory)
-        # Evidence of the filtered fix: eps + N(d - u - o_l; 0, s^2) on the u-grid, with
-        # s^2 = s_lane^2 + s_rx^2 + k n'P n (s_rx: the receiver's own lasting error, which
-        # no filtering removes). Successive filtered fixes share their errors, so each
-        # counts as weaker evidence than its covariance says (k = filtered_inflation; a
-        # raw fix, the Kalman filter off, has independent noise and k = 1).
-        k = c.filtered_inflation if c.kalman else 1.0
-        p_cov = np.array([track.position_cov for track in tracks])
-        sigma = np.sqrt(c.sigma_lane**2 + c.sigma_receiver**2 + k * _quad(normal, p_cov))
-        # A receiver's errors persist from fix to fix at any rate: however often it
-        # reports, its evidence counts at most once per evidence_interval seconds,
-        # like^w with w = min(1, dt / evidence_interval).
+        # Evidence of the fix: eps + N~(d - u - o_l) on the u-grid, with
+        # s^2 = s_lane^2 + s_rx^2 + s_fix^2 (s_rx: the receiver's own lasting error).
+        s_fix = np.array(
+            [c.sigma_pos if t.last_fix.accuracy is None else t.last_fix.accuracy for t in tracks]
+        )
+        sigma = np.sqrt(c.sigma_lane**2 + c.sigma_receiver**2 + s_fix**2)
+        # A fix's error is partly its own (s_fix, independent from fix to fix) and partly
+        # lasting: the user's place in its lane, the receiver's bias and its multipath,
+        # s_last^2 = s_lane^2 + s_rx^2 + pi s_mp^2, which persist for about
+        # evidence_interval seconds. Of n = evidence_interval / dt fixes that share a
+        # lasting error, the mean has variance s_last^2 + s_fix^2 / n: they are worth
+        # n_eff = n (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2) independent fixes, so
+        # each counts as like^w with
+        #     w = n_eff / n = (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2)  (at most 1):
+        # a noisy receiver's fixes count nearly in full, a precise one's once per interval.
+        lasting = c.sigma_lane**2 + c.sigma_receiver**2 + _MULTIPATH_SHARE * MULTIPATH_SIGMA**2
+        shared = c.evidence_interval / np.maximum(dt, 1e-9)
         weight = np.where(
-            dt <= 0.0, 1.0, np.minimum(1.0, np.maximum(dt, 0.0) / c.evidence_interval)
+            dt <= 0.0,
+            1.0,
+            np.minimum(1.0, (lasting + s_fix**2) / (shared * lasting + s_fix**2)),
         )
         out = []
         for i, (user, track, _, _) in enumerate(work):

@@ -4,8 +4,10 @@ A foreign set holds one folder per road under one folder per receiver noise,
 
     DIR/sigma<S>/<road>/map.geojson    the lane map (the project's GeoJSON lane format)
                         trace.jsonl    what the receivers sent (`laas replay`'s input)
-                        truth.jsonl    per fix: the true position, segment and lane
-                        meta.json      what was drawn (lanes, users, common error, ...)
+                        truth.jsonl    per fix: the true position (latitude and
+                                       longitude, or easting and northing as
+                                       `laas scenario` writes them), segment and lane
+                        meta.json      what was drawn (optional)
 
 and is scored as the project's own runs are (`laas.sim.score`), by (segment, lane) id as
 well as by geometry. Such a set says nothing of the common error it drew beyond its size,
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,7 +108,8 @@ def load_road(road: ForeignRoad) -> tuple[HdMap, ForeignTrace]:
     """The map and the fixes of one road, each with its truth and the oracle's estimate of
     the common error (module docstring)."""
     hdmap = read_geojson_file(road.path / "map.geojson")
-    meta = json.loads((road.path / "meta.json").read_text())
+    meta_file = road.path / "meta.json"
+    meta = json.loads(meta_file.read_text()) if meta_file.is_file() else {}
     trace = road.path / "trace.jsonl"
     lines: list[TraceLine] = []
     with trace.open() as f:
@@ -133,7 +137,7 @@ def load_road(road: ForeignRoad) -> tuple[HdMap, ForeignTrace]:
                 f"{trace}:{line.line}: no truth for user {line.user!r} at {m.timestamp}"
             )
         fix_xy[i] = proj.to_utm(m.longitude, m.latitude)
-        true_xy[i] = proj.to_utm(float(row["longitude"]), float(row["latitude"]))  # type: ignore[arg-type]
+        true_xy[i] = _true_position(row, proj.to_utm)
         t[i] = m.timestamp / 1000.0
     error = fix_xy - true_xy
     order = np.argsort(t)
@@ -160,6 +164,16 @@ def load_road(road: ForeignRoad) -> tuple[HdMap, ForeignTrace]:
             )
         )
     return hdmap, ForeignTrace(tuple(fixes), meta)
+
+
+def _true_position(
+    row: dict[str, object], to_utm: Callable[[float, float], tuple[float, float]]
+) -> tuple[float, float]:
+    """A truth row's position in the map's frame: its WGS84 `latitude` and `longitude`,
+    or the `easting` and `northing` that `laas scenario` writes (`laas.sim.truth`)."""
+    if "easting" in row:
+        return float(row["easting"]), float(row["northing"])  # type: ignore[arg-type]
+    return to_utm(float(row["longitude"]), float(row["latitude"]))  # type: ignore[arg-type]
 
 
 def _true_headings(users: list[str], xy: np.ndarray, t: np.ndarray) -> np.ndarray:

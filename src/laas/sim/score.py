@@ -8,9 +8,11 @@
              into elements); Acc. by id, beside it for one release, the share
              whose (segment, lane) is the true one.
 
-Each answer's stated confidence is scored too (`laas.sim.integrity`): its lane probability
-against whether its lane was right, its accuracies across and along the road against its
-errors there.
+Each answer's stated confidence is scored too (`laas.sim.integrity`): its probability
+against whether its (segment, lane) was the true one (the probability is that of the road
+element and the lane it names: near a seam, within the error along the road, the
+neighbouring element's lane is a wrong answer), its accuracies across and along the road
+against its errors there.
 
 Errors are also split across and along the road (the true direction of travel), and
 before and after the common error became observable: the first time the orientations of
@@ -95,16 +97,8 @@ def judge(
     return e - fix.true_e, n - fix.true_n, by_id, right
 
 
-def score(
-    hdmap: HdMap,
-    trace: Fixes,
-    answers: Sequence[CorrectedPosition | None],
-    *,
-    integrity_by_id: bool = False,
-) -> RunResult:
-    """Score answers (one per fix of the trace, None where none came) against the truth;
-    the integrity figures count a lane right by geometry, or with `integrity_by_id` only
-    when its (segment, lane) is the true one."""
+def score(hdmap: HdMap, trace: Fixes, answers: Sequence[CorrectedPosition | None]) -> RunResult:
+    """Score answers (one per fix of the trace, None where none came) against the truth."""
     proj = hdmap.projection
     n = len(trace.fixes)
     if len(answers) != n:
@@ -146,8 +140,7 @@ def score(
     cross = np.abs(e_ok[:, 0] * t_ok[:, 1] - e_ok[:, 1] * t_ok[:, 0])
     obs = observable[answered]
     tally = IntegrityTally()
-    judged = ok_id if integrity_by_id else ok
-    for p, right in zip(prob[answered], judged[answered], strict=True):
+    for p, right in zip(prob[answered], ok_id[answered], strict=True):
         tally.add_answer(float(p), bool(right))
     rated = ~np.isnan(sigma[answered, 0])
     tally.add_errors(

@@ -85,7 +85,7 @@ class Suite(BaseModel):
     sigmas: tuple[float, ...] = (1.0, 2.5)
     calibrated: bool = True  # default mode reports its lane probability calibrated
     # A recorded set (`laas.sim.foreign`): its folder, and its runs, each road recorded at
-    # one sigma_pos; its integrity figures count a lane right by (segment, lane) id.
+    # one sigma_pos.
     source: str | None = None
     runs: tuple[tuple[str, int, float], ...] | None = None
 
@@ -196,10 +196,7 @@ def foreign_suite(root: Path) -> Suite:
     roads = find_roads(root)
     return Suite(
         name="foreign",
-        description=(
-            f"roads from another generator ({root}; integrity scored by (segment, lane) id, "
-            "as the set scores it; never tune on these)"
-        ),
+        description=(f"roads from another generator ({root}; never tune on these)"),
         cases=((FOREIGN_FAMILY, tuple(r.road for r in roads)),),
         sigmas=tuple(sorted({r.sigma_pos for r in roads})),
         source=str(root),
@@ -401,9 +398,7 @@ def run_case(
     for method, (answer, config) in _answerers(sigma_pos, calibrated).items():
         t0 = time.perf_counter()
         try:
-            result = score(
-                hdmap, fixes, answer(hdmap, fixes, config), integrity_by_id=source is not None
-            )
+            result = score(hdmap, fixes, answer(hdmap, fixes, config))
         except Exception as exc:  # a failure is a finding: report it, run the rest
             methods[method] = MethodScore.failed(
                 f"{type(exc).__name__}: {exc}", time.perf_counter() - t0

@@ -24,6 +24,7 @@ from laas import (
     FixRefused,
     GpsMeasurement,
     HdMap,
+    KeepingQuiet,
     MapError,
     ServiceUnavailable,
     UntrustedService,
@@ -149,6 +150,31 @@ def test_the_client_answers_itself_while_its_session_keeps_quiet(hamburg_map: Hd
     assert rotations >= 1 and 0 < client.silent < len(car)
     assert [a.timestamp for a in answers] == [f.timestamp for f in car]
     assert all(a.segment is not None and a.lane_type == "driving" for a in answers)
+
+
+def test_a_quiet_session_with_nothing_to_go_on_says_when_to_send_again(
+    hamburg_map: HdMap,
+) -> None:
+    """Fixes off the map are refused, so the client has no answer to dead-reckon from:
+    once its session keeps quiet after a change of pseudonym, `locate` says so."""
+    policy = RotationPolicy(strategy="epoch", silence=0.3, silence_max=0.8)
+    off = car_fixes(hamburg_map)[-1].model_copy(update={"latitude": 54.56})
+    with (
+        LocalDeployment(hamburg_map, rotation_period=2.0, rotation=policy) as deployment,
+        connect(deployment) as client,
+    ):
+        deadline = time.monotonic() + 10.0  # an epoch is 2 s
+        while True:
+            assert time.monotonic() < deadline, "the session never kept quiet"
+            try:
+                client.locate(off.model_copy(update={"timestamp": int(time.time() * 1000)}))
+            except FixRefused as refused:
+                assert refused.kind == "outside"
+            except KeepingQuiet as quiet:
+                assert "keeps quiet" in str(quiet) and "send again" in str(quiet)
+                break
+            time.sleep(0.05)  # a 20 Hz receiver
+    assert client.silent == 0
 
 
 def test_settings_come_from_the_commands_environment(

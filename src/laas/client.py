@@ -279,19 +279,17 @@ def _client_error(exc: BaseException) -> ClientError:
 class AsyncClient:
     """`Client` for asyncio: ``async with AsyncClient(...) as c: await c.locate(fix)``.
 
-    Takes the same arguments as `Client` (`from_env` too); the connection's work runs on
-    its own threads, never on the event loop.
+    Takes the same arguments as `Client`, or a `Client`; `from_env` too. The connection's
+    work runs on its own threads, never on the event loop.
     """
 
-    def __init__(self, cluster: BrokerSettings | str, **settings: Any) -> None:
-        self.client = Client(cluster, **settings)
+    def __init__(self, cluster: BrokerSettings | str | Client, **settings: Any) -> None:
+        self.client = cluster if isinstance(cluster, Client) else Client(cluster, **settings)
 
     @classmethod
     def from_env(cls, prefix: str = "LAAS", **settings: Any) -> AsyncClient:
         """As `Client.from_env`."""
-        made = cls.__new__(cls)
-        made.client = Client.from_env(prefix, **settings)
-        return made
+        return cls(Client.from_env(prefix, **settings))
 
     async def __aenter__(self) -> AsyncClient:
         await asyncio.to_thread(self.client.start)

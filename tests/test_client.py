@@ -26,6 +26,7 @@ from laas import (
     HdMap,
     KeepingQuiet,
     MapError,
+    NoAnswer,
     ServiceUnavailable,
     UntrustedService,
 )
@@ -94,6 +95,28 @@ def test_a_fix_in_a_corrected_position_out_and_refusals_raise(
     assert isinstance(off.value, laas.LaasError)
 
 
+def test_a_burst_over_the_cores_rate_is_refused_with_what_to_do(
+    deployment: LocalDeployment, hamburg_map: HdMap
+) -> None:
+    """60 fixes at once against the user core's burst of 20: the first are answered, the
+    rest raise ServiceUnavailable saying to send fewer, or NoAnswer where the core's notices
+    ran out of their own budget."""
+    last = car_fixes(hamburg_map)[-1]
+    burst = [
+        last.model_copy(update={"timestamp": last.timestamp - 600 + 10 * i}) for i in range(60)
+    ]
+    with connect(deployment) as client:
+        client.locate(burst[0])  # the session is open: every later fix leaves at once
+        futures = [client.submit(fix) for fix in burst[1:]]
+        outcomes = [f.exception(timeout=10) or f.result() for f in futures]
+    answered = [o for o in outcomes if isinstance(o, CorrectedPosition)]
+    refused = [o for o in outcomes if isinstance(o, ServiceUnavailable)]
+    unanswered = [o for o in outcomes if isinstance(o, NoAnswer)]
+    assert len(answered) + len(refused) + len(unanswered) == len(outcomes), outcomes
+    assert answered and refused, outcomes
+    assert all("send fewer fixes a second" in str(r) for r in refused), refused[0]
+
+
 def test_the_asyncio_client_gets_the_same_answers(
     deployment: LocalDeployment, hamburg_map: HdMap
 ) -> None:
@@ -133,7 +156,7 @@ def test_a_client_crossing_a_border_is_handed_to_the_next_regional_worker(
 
 def test_the_client_answers_itself_while_its_session_keeps_quiet(hamburg_map: HdMap) -> None:
     """Epochs of 2 s with silences of 0.3-0.8 s: every fix answered, some by the client,
-    on the map's lanes (it holds the map)."""
+    on the map's lanes (it holds the map), nearly all on the car's kind of lane."""
     policy = RotationPolicy(strategy="epoch", silence=0.3, silence_max=0.8)
     car = car_fixes(hamburg_map)[-60:]
     speedup = 10.0  # the deployment's workers allow simulators up to 1000 x
@@ -149,7 +172,10 @@ def test_the_client_answers_itself_while_its_session_keeps_quiet(hamburg_map: Hd
         rotations = deployment.cores["user"].stats.rotations
     assert rotations >= 1 and 0 < client.silent < len(car)
     assert [a.timestamp for a in answers] == [f.timestamp for f in car]
-    assert all(a.segment is not None and a.lane_type == "driving" for a in answers)
+    assert all(a.segment is not None for a in answers)
+    # a new pseudonym is a new track to the worker: its first answers may doubt the lane
+    driving = sum(a.lane_type == "driving" for a in answers)
+    assert driving >= 0.9 * len(answers), [a.lane_type for a in answers]
 
 
 def test_a_quiet_session_with_nothing_to_go_on_says_when_to_send_again(

@@ -46,7 +46,15 @@ from laas.errors import (
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition, ErrorKind, ErrorReply, GpsMeasurement, read_reply
 from laas.worker.service import SERVICE_NAME
-from ldm import BrokerSettings, LdmError, Participant, RoutedSession, SessionSilent, TrustError
+from ldm import (
+    BrokerSettings,
+    LdmError,
+    Participant,
+    RequestRejected,
+    RoutedSession,
+    SessionSilent,
+    TrustError,
+)
 from ldm.errors import ConfigError as LdmConfigError
 from ldm.ops.process import broker_settings
 
@@ -59,6 +67,14 @@ _WHAT_TO_DO: dict[ErrorKind, str] = {
     "stale": "send each fix with a later timestamp than the one before",
     "internal": "send the next fix; if this goes on, tell the service's operator",
 }
+
+
+_REJECTED = {
+    "rate_limited": "send fewer fixes a second (the user core's rate limit)",
+    "clock": "set this machine's clock right (NTP)",
+    "unavailable": "the user core cannot reach the service now; send the next fix later",
+}
+"""What to do when the user core refuses a fix, by `ldm.RequestRejected.reason`."""
 
 
 class Client:
@@ -137,7 +153,8 @@ class Client:
     # --- lifetime -----------------------------------------------------------------------
 
     def start(self) -> Client:
-        """Connect, wait for the service and open the session (each within `timeout`)."""
+        """Connect and wait until the cluster lists the service (each within `timeout`);
+        the session opens with the first fix, with the worker whose area holds it."""
         try:
             self.participant.start(timeout=self.timeout)
             wait_for_service(self.participant, self.timeout, self.service)
@@ -271,8 +288,16 @@ def _client_error(exc: BaseException) -> ClientError:
         return exc
     if isinstance(exc, TrustError):
         return UntrustedService(str(exc))
+    if isinstance(exc, RequestRejected):
+        if "ephemeral key" in str(exc):
+            return ServiceUnavailable(
+                f"{exc}: the user core still holds the session of an earlier client of this "
+                "name (a restart within its rekey interval); wait, or connect under another name"
+            )
+        hint = _REJECTED.get(exc.reason)
+        return ServiceUnavailable(str(exc) if hint is None else f"{exc}; {hint}")
     if isinstance(exc, TimeoutError):
-        return NoAnswer(str(exc))
+        return NoAnswer(f"{exc}; send the next fix")
     return ServiceUnavailable(str(exc))
 
 

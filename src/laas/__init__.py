@@ -12,8 +12,8 @@ and `laas evaluate` all drive the same engine.
 """
 
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
 
-from laas.client import AsyncClient, Client
 from laas.config import EngineConfig, Mode
 from laas.engine import Engine, EngineStats
 from laas.errors import (
@@ -32,10 +32,24 @@ from laas.map import HdMap, Lane, Segment
 from laas.map.bundled import load_map
 from laas.models import CorrectedPosition, ErrorReply, GpsMeasurement, LaneType, read_reply
 
+if TYPE_CHECKING:
+    from laas.client import AsyncClient, Client
+
 try:
     __version__ = version("laas")
 except PackageNotFoundError:  # a source tree on sys.path, not installed
     __version__ = "0+unknown"
+
+
+def __getattr__(name: str) -> Any:
+    """`Client` and `AsyncClient`, imported on first use: importing laas (the engine, the
+    maps, the models) loads no MQTT transport."""
+    if name in ("AsyncClient", "Client"):
+        from laas import client
+
+        return getattr(client, name)
+    raise AttributeError(f"module 'laas' has no attribute {name!r}")
+
 
 __all__ = [
     "AsyncClient",

@@ -39,6 +39,28 @@ def test_the_readme_names_the_variables_its_example_reads() -> None:
     assert "laas.Client" in readme_example()
 
 
+def test_the_readmes_files_links_profiles_and_services_exist() -> None:
+    """Every file the README and the project files link or run exists, and every compose
+    profile and service the README names is in docker-compose.yml."""
+    import yaml  # type: ignore[import-untyped]
+
+    root = README.parent
+    pages = [README, root / "SECURITY.md", root / "CHANGELOG.md"]
+    pages += [root / "docs" / f"{name}.md" for name in ("design", "performance", "scaling")]
+    for page in pages:
+        for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", page.read_text()):
+            assert (page.parent / target).exists(), f"{page.name}: {target}"
+    text = README.read_text()
+    for script in re.findall(r"((?:deploy|scripts)/[\w./-]+\.(?:sh|py))", text):
+        assert (root / script).is_file(), script
+    services = yaml.safe_load((root / "docker-compose.yml").read_text())["services"]
+    profiles = {p for s in services.values() for p in s.get("profiles", [])}
+    named = set(re.findall(r"--profile (\w+)", text))
+    assert named and named <= profiles, (named, profiles)
+    for service in re.findall(r"docker compose (?:restart|--profile \w+ up) (\w[\w-]*)", text):
+        assert service in services, service
+
+
 @pytest.mark.mosquitto
 @pytest.mark.timeout(120)
 def test_the_readme_python_example_runs_against_the_compose_deployment(

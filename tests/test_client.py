@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -234,7 +235,7 @@ def test_settings_come_from_the_commands_environment(
         Client.from_env(timeout=1.0).start()
 
 
-def test_a_map_loads_by_name_or_file(tmp_path: Path) -> None:
+def test_a_map_loads_by_name_or_file_and_the_version_is_the_projects(tmp_path: Path) -> None:
     hamburg = laas.load_map("messe-hamburg")
     assert "messe-0" in hamburg.segments
     assert set(laas.load_map(Path(hamburg.source)).segments) == set(hamburg.segments)
@@ -242,4 +243,5 @@ def test_a_map_loads_by_name_or_file(tmp_path: Path) -> None:
         laas.load_map("atlantis")
     with pytest.raises(MapError, match="no map file"):
         laas.load_map(tmp_path / "nothing.geojson")
-    assert laas.__version__ == "0.2.0"
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert laas.__version__ == pyproject["project"]["version"]

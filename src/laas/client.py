@@ -74,7 +74,7 @@ _REJECTED = {
     "clock": "set this machine's clock right (NTP)",
     "unavailable": "the user core cannot reach the service now; send the next fix later",
 }
-"""What to do when the user core refuses a fix, by `ldm.RequestRejected.reason`."""
+"""What to do when the user core refuses a fix, by the reason of its `ldm.RequestRejected`."""
 
 
 class Client:

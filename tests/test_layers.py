@@ -160,21 +160,31 @@ def test_importing_the_engine_loads_no_transport() -> None:
 
 def test_the_public_api_is_pinned() -> None:
     assert sorted(laas.__all__) == [
+        "AsyncClient",
+        "Client",
+        "ClientError",
         "ConfigError",
         "CorrectedPosition",
         "Engine",
         "EngineConfig",
         "EngineStats",
         "ErrorReply",
+        "FixRefused",
         "GpsMeasurement",
         "HdMap",
+        "KeepingQuiet",
         "LaasError",
         "Lane",
         "LaneType",
         "MapError",
         "Mode",
+        "NoAnswer",
         "Segment",
+        "ServiceUnavailable",
         "TraceError",
+        "UntrustedService",
+        "__version__",
+        "load_map",
         "read_reply",
     ]
     for name in laas.__all__:

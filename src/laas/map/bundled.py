@@ -1,4 +1,4 @@
-"""The maps that ship with LaaS, and where to find them.
+"""The maps that ship with LaaS, where to find them, and `load_map`: a map by file or name.
 
 Looked for in this order: the folder named by ``$LAAS_MAPS``; the checkout's ``maps/``
 (an editable install or a source tree); the installed copy under
@@ -12,8 +12,10 @@ import sys
 from pathlib import Path
 
 from laas.errors import MapError
+from laas.map.geojson import read_geojson_file
+from laas.map.hdmap import HdMap
 
-__all__ = ["bundled_map", "maps_dir"]
+__all__ = ["bundled_map", "load_map", "maps_dir"]
 
 
 def maps_dir() -> Path:
@@ -36,3 +38,18 @@ def bundled_map(name: str) -> Path:
             "holds the project's maps/"
         )
     return path
+
+
+def load_map(source: str | os.PathLike[str]) -> HdMap:
+    """A lane map from a GeoJSON file (`laas map import` makes one), or the bundled map of
+    that name (``"messe-hamburg"``); MapError names the file or feature at fault.
+
+    >>> load_map("messe-hamburg").segments["messe-0"].lanes[0].type
+    'driving'
+    """
+    path = Path(source)
+    if isinstance(source, str) and path.suffix == "" and len(path.parts) == 1:
+        path = bundled_map(source)
+    if not path.is_file():
+        raise MapError(f"no map file at {path}; give a GeoJSON lane map or a bundled map's name")
+    return read_geojson_file(path)

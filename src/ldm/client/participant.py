@@ -393,6 +393,8 @@ class Participant(Worker[Event]):
         self._distrusted: dict[str, str] = {}  # service -> why its last grant was refused
         self.ignored = 0
         """Notices, lists and replies ignored as unauthentic (forged, replayed, unsigned)."""
+        self.untrusted: list[ServiceDescription] = []
+        """The services of the latest list left out: neither pinned nor endorsed."""
         self._opening: dict[str, Future[tuple[SessionGrant, bytes | None]]] = {}
         self._requests: dict[str, KeyPair] = {}
         """Request correlation id -> the key sent with it, until its grant (or a newer
@@ -642,6 +644,7 @@ class Participant(Worker[Event]):
                 return
             self._list_t = listing.t
         services = [s for s in listing.services if self.trust.trusts(s)]
+        self.untrusted = [s for s in listing.services if not self.trust.trusts(s)]
         self._services = services
         self._have_list.set()
         self._check_keys(services)

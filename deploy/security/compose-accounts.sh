@@ -34,13 +34,14 @@
 #   core-service.key   (none)             the service-cluster core's signatures
 #
 # The brokers run as uid 1883 in their containers and read the password file through a
-# read-only mount: as root the script gives it to 1883 with mode 0640; otherwise it makes
-# it 0644 (hashes only, of random passwords) unless MODE is set. The Python services run
-# as the image's user, uid 10001 (Dockerfile; KEY_UID), and each reads its own key
-# through a read-only mount: as root the script gives each new key to that uid with mode
-# 0400; otherwise a new key is 0644 (unless KEY_MODE is set) in a keys directory of mode
-# 0700, which keeps other users of the host out. Needs the ldm command (on PATH, else
-# the repository's .venv/bin/ldm, else python3 -m ldm), not Mosquitto.
+# read-only mount: as root the script gives it to 1883 with mode 0640; otherwise it
+# makes it 0644 (hashes only, of random passwords) unless MODE is set (make-passwd.sh).
+# The Python services run as the image's user, uid 10001 (Dockerfile; KEY_UID), and each
+# reads its own key through a read-only mount: as root the script gives each new key to
+# that uid with mode 0400; otherwise a new key is 0644 (unless KEY_MODE is set) in a
+# keys directory of mode 0700, which keeps other users of the host out. Needs the ldm
+# command (on PATH, else the repository's .venv/bin/ldm, else python3 -m ldm), not
+# Mosquitto.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/../.." && pwd)
@@ -92,12 +93,9 @@ for pair in \
   done
 done
 
-if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
-  printf '%s\n' "${entries[@]}" | MODE=0640 "$here/make-passwd.sh" "$passwd" -
-  chown 1883:1883 "$passwd"
-else
-  printf '%s\n' "${entries[@]}" | MODE=${MODE:-0644} "$here/make-passwd.sh" "$passwd" -
-fi
+# The env file holds these accounts' passwords: the file gets them (REPLACE=1); the
+# other accounts in it are kept. make-passwd.sh makes it readable by the brokers.
+printf '%s\n' "${entries[@]}" | REPLACE=1 "$here/make-passwd.sh" "$passwd" -
 echo "accounts of docker-compose.yml in $passwd"
 
 # The identity keys: made once, never overwritten; ENV_FILE holds their public keys.

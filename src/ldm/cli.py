@@ -162,8 +162,9 @@ def _parser() -> argparse.ArgumentParser:
         "passwd",
         help="create or extend a Mosquitto password file",
         description="Create or extend a Mosquitto password file (PBKDF2-SHA512, as "
-        "mosquitto_passwd writes it). Other accounts in FILE are kept; a USER without "
-        "=PASSWORD gets a random password, printed once as USER=PASSWORD.",
+        "mosquitto_passwd writes it). Other accounts in FILE are kept, and so is the "
+        "password of an account FILE already holds, unless --replace is given; a USER "
+        "without =PASSWORD gets a random password, printed once as USER=PASSWORD.",
     )
     passwd.add_argument("file", type=Path, metavar="FILE", help="the password file")
     passwd.add_argument(
@@ -174,6 +175,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     passwd.add_argument(
         "--mode", type=_octal, default=0o640, help="file mode, octal (default 0640)"
+    )
+    passwd.add_argument(
+        "--replace",
+        action="store_true",
+        help="give accounts FILE already holds the new password (default: keep theirs)",
     )
     return parser
 
@@ -304,15 +310,22 @@ def _passwd(args: argparse.Namespace) -> int:
     """`ldm passwd`: errors go to stderr, stdout carries only the generated passwords."""
     try:
         passwords, generated = password_entries(args.entries)
-        set_passwords(args.file, passwords, mode=args.mode)
+        kept = set_passwords(args.file, passwords, mode=args.mode, replace=args.replace)
     except PasswordFileError as exc:
         print(f"ldm passwd: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"ldm passwd: cannot write {args.file}: {exc.strerror or exc}", file=sys.stderr)
         return 1
+    for user in kept:
+        print(
+            f"ldm passwd: {user} is already in {args.file}: its password was kept "
+            "(--replace gives it a new one)",
+            file=sys.stderr,
+        )
     for user in generated:
-        print(f"{user}={passwords[user]}", flush=True)
+        if user not in kept:
+            print(f"{user}={passwords[user]}", flush=True)
     return 0
 
 

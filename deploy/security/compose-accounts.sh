@@ -10,7 +10,9 @@
 #    deploy/security/make-passwd.sh (`ldm passwd`, passwords on its stdin): one salted
 #    hash per account. Other accounts already in it (your participants, added with
 #    make-passwd.sh) are kept.
-# 3. deploy/security/keys/ (or $KEYS_DIR) gets each service's Ed25519 identity key
+# 3. deploy/security/health/mosquitto_sub (or in $HEALTH_DIR): the brokers' health check
+#    options, user laas-health and its password (not on the check's command line).
+# 4. deploy/security/keys/ (or $KEYS_DIR) gets each service's Ed25519 identity key
 #    (`ldm keys new`) unless the file exists: an existing key is never overwritten. The
 #    PUBLIC keys go into ENV_FILE (as `ldm keys show` prints them from the key files),
 #    where compose finds them for the cores' --trust-service and the simulator's pins.
@@ -97,6 +99,23 @@ done
 # other accounts in it are kept. make-passwd.sh makes it readable by the brokers.
 printf '%s\n' "${entries[@]}" | REPLACE=1 "$here/make-passwd.sh" "$passwd" -
 echo "accounts of docker-compose.yml in $passwd"
+
+# The brokers' health check logs in as laas-health with the options in this file (read
+# by mosquitto_sub from $XDG_CONFIG_HOME), so the password is on no command line that
+# `docker inspect` shows. Rewritten each run, from the env file's password; readable by
+# the brokers (uid 1883) as the password file is.
+health=${HEALTH_DIR:-$here/health}
+[ -d "$health" ] || mkdir -m 0755 "$health"
+tmp=$(mktemp "$health/.mosquitto_sub.XXXXXX")
+printf -- '-u laas-health\n-P %s\n' "$(value LAAS_HEALTH_PASSWORD)" >"$tmp"
+if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
+  chmod 0640 "$tmp"
+  chown 1883:1883 "$tmp"
+else
+  chmod "${MODE:-0644}" "$tmp"
+fi
+mv "$tmp" "$health/mosquitto_sub"
+echo "the brokers' health check options in $health/mosquitto_sub"
 
 # The identity keys: made once, never overwritten; ENV_FILE holds their public keys.
 if command -v ldm >/dev/null; then

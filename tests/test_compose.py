@@ -41,6 +41,8 @@ from ldm.local.pytest_plugin import need_mosquitto
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 CLUSTER = ROOT / "docker-compose.cluster.yml"  # the service cluster on NATS, an override
+TLS = ROOT / "docker-compose.tls.yml"  # the user-cluster broker's TLS listener, an override
+LISTENERS = ROOT / "deploy" / "mosquitto" / "listeners.d"  # included by mosquitto.conf
 ACCOUNTS = ROOT / "deploy" / "security" / "compose-accounts.sh"
 PASSWD = ROOT / "deploy" / "security" / "passwd"
 KEYS = ROOT / "deploy" / "security" / "keys"
@@ -87,19 +89,28 @@ def interpolate(value: Any, env: Mapping[str, str]) -> Any:
 
 def merge(base: Any, override: Any) -> Any:
     """Compose's merge of a later file over an earlier one: mappings merged key by key,
-    `profiles` (and other sequences of names) appended, other values replaced; a
-    service's `command` and health check `test` are replaced whole."""
+    `volumes` by their target (a later mount replaces one at the same path), `profiles`
+    and `ports` (and other sequences) appended, other values replaced; a service's
+    `command` and health check `test` are replaced whole."""
     if isinstance(base, dict) and isinstance(override, dict):
         merged = dict(base)
         for key, value in override.items():
             if key in ("command", "test") or key not in merged:
                 merged[key] = value
+            elif key == "volumes" and isinstance(value, list):
+                by_target = {_target(v): v for v in merged[key]}
+                by_target.update({_target(v): v for v in value})
+                merged[key] = list(by_target.values())
             else:
                 merged[key] = merge(merged[key], value)
         return merged
     if isinstance(base, list) and isinstance(override, list):
         return base + [v for v in override if v not in base]
     return override
+
+
+def _target(volume: str | dict[str, Any]) -> str:
+    return str(volume["target"]) if isinstance(volume, dict) else str(volume).split(":")[1]
 
 
 def load_compose(env: Mapping[str, str] | None = None, *overrides: Path) -> dict[str, Service]:
@@ -300,15 +311,13 @@ def test_every_user_cluster_listener_uses_the_user_name_as_client_id() -> None:
     assert blocks, "no listener"
     for block in blocks:
         assert ("use_username_as_clientid", "true") in block, config
-    # ... and so does the commented TLS listener, once uncommented
-    uncommented = [
-        line.lstrip("# ").strip()
-        for line in config.read_text().splitlines()
-        if line.startswith("#   ")
-    ]
-    tls = [(k, v.strip()) for k, _, v in (line.partition(" ") for line in uncommented if line)]
-    tls_blocks = listener_blocks(tls)
-    assert [b for b in tls_blocks if ("certfile", "/mosquitto/config/certs/server.crt") in b]
+    # ... and so do the listeners it includes: none by default, the TLS overlay's
+    included = dict(settings(config))["include_dir"]
+    assert mounts(load_compose(SETTINGS)["broker-user"])[included] == LISTENERS
+    assert list(LISTENERS.glob("*.conf")) == []
+    tls = load_compose(SETTINGS, TLS)["broker-user"]
+    tls_blocks = listener_blocks(settings(mounts(tls)[included] / "tls.conf"))
+    assert [b for b in tls_blocks if ("certfile", "/mosquitto/certs/server.crt") in b]
     for block in tls_blocks:
         assert ("use_username_as_clientid", "true") in block, block
 

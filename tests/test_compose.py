@@ -365,7 +365,7 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
         assert command[command.index("--rate") + 1] == _default("rate")
         assert command[command.index("--burst") + 1] == _default("burst")
     assert environment(services["worker"])["LAAS_USERNAME"] == "laas-worker"
-    assert environment(services["simulator"])["LAAS_PASSWORD"] == "p"
+    assert environment(services["simulator"])["LAAS_DEVICE_PASSWORD"] == "p"
     # no password on a command line, not even the broker health check's (laas-health)
     for name, service in services.items():
         words = (
@@ -475,7 +475,7 @@ def test_cores_and_worker_match_the_topology() -> None:
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"
     sim = services["simulator"]["command"]
     assert sim[:2] == ["laas", "simulate"]
-    assert sim[sim.index("--account-prefix") + 1] == "sim-"
+    assert "--device-accounts" in sim and sim[sim.index("--prefix") + 1] == "sim-"
     assert sim[sim.index("--cluster") + 1] == "mqtt://broker-user:1883"
     # configuration by environment
     changed = load_compose({**SETTINGS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
@@ -633,7 +633,8 @@ def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> Non
             "-m",
             "laas.cli",
             "simulate",
-            "--account-prefix",
+            "--device-accounts",
+            "--prefix",
             "sim-",
             "--list-accounts",
         ],

@@ -26,6 +26,7 @@ from ldm.config import CoreConfig, build
 from ldm.core.core import Core
 from ldm.errors import ConfigError, LdmError, PasswordFileError
 from ldm.local.embedded import EmbeddedBroker
+from ldm.ops.help import Parser, add_version
 from ldm.ops.logs import configure
 from ldm.ops.passwd import random_password, set_passwords
 from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
@@ -36,7 +37,8 @@ __all__ = ["core_config", "main", "password_entries", "pins"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ldm", description=__doc__.splitlines()[0])
+    parser = Parser(prog="ldm", description=__doc__.splitlines()[0])
+    add_version(parser, "ldm")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -148,15 +150,19 @@ def _parser() -> argparse.ArgumentParser:
     new = keys_sub.add_parser(
         "new", help="write a new private key (mode 0600), print its public key"
     )
-    new.add_argument("file", type=Path, metavar="FILE")
+    new.add_argument("file", type=Path, metavar="FILE", help="the key file to write")
     show = keys_sub.add_parser("show", help="print the public key of a private key file")
-    show.add_argument("file", type=Path, metavar="FILE")
+    show.add_argument("file", type=Path, metavar="FILE", help="a private key file")
     endorse_ = keys_sub.add_parser(
         "endorse", help="print an anchor's endorsement of a service identity"
     )
-    endorse_.add_argument("anchor", type=Path, metavar="ANCHOR_FILE")
-    endorse_.add_argument("service", metavar="SERVICE")
-    endorse_.add_argument("identity", metavar="IDENTITY_PUBLIC_KEY")
+    endorse_.add_argument(
+        "anchor", type=Path, metavar="ANCHOR_FILE", help="the trust anchor's private key file"
+    )
+    endorse_.add_argument("service", metavar="SERVICE", help="the service name, e.g. laas")
+    endorse_.add_argument(
+        "identity", metavar="IDENTITY_PUBLIC_KEY", help="the service's public identity key"
+    )
 
     passwd = sub.add_parser(
         "passwd",
@@ -373,6 +379,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             _core(args)
     except LdmError as exc:
-        print(f"ldm: {exc}", flush=True)
+        print(f"ldm {args.command}: {exc}", file=sys.stderr, flush=True)
         return 2
     return 0

@@ -18,7 +18,7 @@ from ldm.cli import main as ldm_main
 from ldm.ops.help import package_version
 
 SRC = Path(__file__).resolve().parent.parent / "src"
-EMPTY = (None, False, [], argparse.SUPPRESS)
+EMPTY: tuple[object, ...] = (None, False, [], argparse.SUPPRESS)
 
 
 def parsers() -> Iterator[tuple[str, argparse.ArgumentParser]]:

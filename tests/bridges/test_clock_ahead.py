@@ -44,7 +44,7 @@ def test_one_fix_dated_ahead_does_not_lock_the_phone_out_in_the_bridge(
     with LocalDeployment(hamburg_map, limits=WorkerConfig()) as deployment:
         pool = pool_for(deployment)
         bridge = OwnTracksBridge(BrokerSettings(url=deployment.user_url), pool)
-        answers: list[dict[str, object]] = []
+        answers: list[dict[str, int]] = []
         enough = threading.Event()
         wanted = 12  # 4 fixes before the one dated ahead, 8 after it
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-import pynmea2
+import pynmea2  # type: ignore[import-untyped]
 
 from laas.bridges.nmea import nmea_fixes, nmea_sentences
 from laas.models import GpsMeasurement

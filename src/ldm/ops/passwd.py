@@ -165,11 +165,11 @@ def set_passwords(
     out: list[str] = []
     done: set[str] = set()
     for existing in old:
-        user = existing.split(":", 1)[0].strip() if ":" in existing else None
-        if user in lines:
-            if user not in done:
-                out.append(lines[user])
-                done.add(user)
+        name = existing.split(":", 1)[0].strip() if ":" in existing else None
+        if name is not None and name in lines:
+            if name not in done:
+                out.append(lines[name])
+                done.add(name)
         else:
             out.append(existing)
     out += [line for user, line in lines.items() if user not in done]

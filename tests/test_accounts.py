@@ -99,6 +99,7 @@ def test_adding_a_phone_keeps_every_other_account_and_the_broker_reads_the_file(
         uid=uid,
         PASSWD_FILE=str(passwd),
         KEYS_DIR=str(work / "keys"),
+        HEALTH_DIR=str(work / "health"),
         **tools,
     )
     env = dict(

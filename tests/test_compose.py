@@ -137,7 +137,7 @@ def is_broker(service: Service) -> bool:
 
 
 def is_nats(service: Service) -> bool:
-    """A node of the service cluster on NATS (profile `cluster`)."""
+    """A node of the service cluster on NATS (docker-compose.cluster.yml)."""
     return str(service.get("image", "")).startswith("nats:")
 
 

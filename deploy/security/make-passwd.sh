@@ -58,6 +58,6 @@ if [ -n "$owner" ]; then
   chown "$owner" "$file"
   echo "$0: $file is mode $mode, owned by $owner (eclipse-mosquitto reads it as 1883)" >&2
 else
-  echo "$0: $file is mode $mode, owned by $(id -un); Mosquitto reads it as another" \
+  echo "$0: $file is mode $mode, owned by $(id -un 2>/dev/null || id -u); Mosquitto reads it as another" \
     "user only if the mode lets others read (0644)" >&2
 fi

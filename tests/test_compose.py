@@ -1012,3 +1012,21 @@ def test_the_brokers_run_the_mosquitto_series_the_tests_run() -> None:
     help_text = subprocess.run([binary, "-h"], capture_output=True, text=True).stdout
     found = re.search(r"mosquitto version (\d+\.\d+)\.\d+", help_text)
     assert found and found[1] == "2.0", help_text[:80]
+
+
+def test_env_example_gives_the_defaults_of_the_compose_files() -> None:
+    """Each non-secret value of deploy/env.example is the default every compose file
+    (docker-compose.yml and its overrides) uses for it when unset, and each is used."""
+    example = dict(
+        line.split("=", 1)
+        for line in (ROOT / "deploy" / "env.example").read_text().splitlines()
+        if line and not line.startswith("#")
+    )
+    texts = "".join(path.read_text() for path in (COMPOSE, CLUSTER, TLS))
+    used = {m[0]: m[1] for m in re.findall(r"\$\{(\w+):-([^}]*)\}", texts)}
+    for name, value in example.items():
+        if not value:  # secrets and keys: compose-accounts.sh fills them in
+            continue
+        assert name in used, f"{name} of env.example is used by no compose file"
+        defaults = set(re.findall(rf"\$\{{{name}:-([^}}]*)\}}", texts))
+        assert defaults == {value}, (name, defaults, value)

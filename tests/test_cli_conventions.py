@@ -15,10 +15,9 @@ from laas.cli import build_parser as laas_parser
 from laas.cli import main as laas_main
 from ldm.cli import _parser as ldm_parser
 from ldm.cli import main as ldm_main
-from ldm.ops.help import package_version
+from ldm.ops.help import no_default, package_version
 
 SRC = Path(__file__).resolve().parent.parent / "src"
-EMPTY: tuple[object, ...] = (None, False, [], argparse.SUPPRESS)
 
 
 def parsers() -> Iterator[tuple[str, argparse.ArgumentParser]]:
@@ -63,7 +62,7 @@ def test_every_option_shows_its_default() -> None:
     for prog, parser in parsers():
         formatter = parser._get_formatter()
         for action in options(parser):
-            if action.option_strings and action.default not in EMPTY and action.nargs != 0:
+            if action.option_strings and not no_default(action.default) and action.nargs != 0:
                 text = formatter._expand_help(action)
                 if "default" not in text.lower():
                     hidden.append(f"{prog} {action.option_strings[0]}: {text}")
@@ -71,6 +70,9 @@ def test_every_option_shows_its_default() -> None:
     # the formatter says it where the help does not
     worker = dict(parsers())["laas worker"].format_help()
     assert re.search(r"--sigma-pos SIGMA_POS\s+receiver position noise, m \(default: 1.0\)", worker)
+    # a default of 0 is a default
+    simulate = dict(parsers())["laas simulate"].format_help()
+    assert re.search(r"--seed SEED\s+seed of the GNSS errors .*\s*\(default: 0\)", simulate)
 
 
 def environment_variables() -> set[str]:

@@ -14,7 +14,7 @@ import argparse
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-__all__ = ["DefaultsHelpFormatter", "Parser", "add_version", "package_version"]
+__all__ = ["DefaultsHelpFormatter", "Parser", "add_version", "no_default", "package_version"]
 
 
 class DefaultsHelpFormatter(argparse.HelpFormatter):
@@ -26,11 +26,16 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         if (
             action.option_strings
             and "default" not in text.lower()
-            and default not in (None, False, [], argparse.SUPPRESS)
+            and not no_default(default)
             and action.nargs != 0
         ):
             text += " (default: %(default)s)"
         return text
+
+
+def no_default(default: object) -> bool:
+    """True for a default that is no value: None, a flag's False, an empty list."""
+    return default is None or default is False or default == [] or default == argparse.SUPPRESS
 
 
 class Parser(argparse.ArgumentParser):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml  # type: ignore[import-untyped]
@@ -226,7 +227,7 @@ def _check_cores(user: Scrape, service: Scrape) -> None:
 
 def test_the_scrape_config_covers_every_compose_service_with_metrics() -> None:
     root = Path(__file__).resolve().parents[1]
-    services = {}  # docker-compose.yml and its override for the service cluster on NATS
+    services: dict[str, dict[str, Any]] = {}  # docker-compose.yml and its NATS override
     for file in ("docker-compose.yml", "docker-compose.cluster.yml"):
         for name, service in yaml.safe_load((root / file).read_text())["services"].items():
             services[name] = {**services.get(name, {}), **service}

@@ -40,12 +40,16 @@ from ldm.local.pytest_plugin import need_mosquitto
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
+CLUSTER = ROOT / "docker-compose.cluster.yml"  # the service cluster on NATS, an override
+TLS = ROOT / "docker-compose.tls.yml"  # the user-cluster broker's TLS listener, an override
+LISTENERS = ROOT / "deploy" / "mosquitto" / "listeners.d"  # included by mosquitto.conf
 ACCOUNTS = ROOT / "deploy" / "security" / "compose-accounts.sh"
 PASSWD = ROOT / "deploy" / "security" / "passwd"
 KEYS = ROOT / "deploy" / "security" / "keys"
+HEALTH = ROOT / "deploy" / "security" / "health"  # the brokers' health check options
 # identity key file -> the env variable with its public key (None: no one pins it)
 KEY_FILES = {"laas-worker": "LAAS_SERVICE_KEY", "core-user": "LAAS_CORE_KEY", "core-service": None}
-MOSQUITTO_IMAGE = "eclipse-mosquitto:2"
+MOSQUITTO_IMAGE = "eclipse-mosquitto:2.0.18"
 CONFIG_IN_IMAGE = "/mosquitto/config/mosquitto.conf"
 _VARIABLE = re.compile(r"\$\$|\$\{(\w+)(?:(:?[-?])([^}]*))?\}|\$(\w+)")
 
@@ -83,11 +87,49 @@ def interpolate(value: Any, env: Mapping[str, str]) -> Any:
     return value
 
 
-def load_compose(env: Mapping[str, str] | None = None) -> dict[str, Service]:
-    """The services of docker-compose.yml, with variables substituted from `env`."""
+def merge(base: Any, override: Any) -> Any:
+    """Compose's merge of a later file over an earlier one: mappings merged key by key,
+    `volumes` by their target (a later mount replaces one at the same path), `profiles`
+    and `ports` (and other sequences) appended, other values replaced; a service's
+    `command` and health check `test` are replaced whole."""
+    if isinstance(base, dict) and isinstance(override, dict):
+        merged = dict(base)
+        for key, value in override.items():
+            if key in ("command", "test") or key not in merged:
+                merged[key] = value
+            elif key == "volumes" and isinstance(value, list):
+                by_target = {_target(v): v for v in merged[key]}
+                by_target.update({_target(v): v for v in value})
+                merged[key] = list(by_target.values())
+            else:
+                merged[key] = merge(merged[key], value)
+        return merged
+    if isinstance(base, list) and isinstance(override, list):
+        return base + [v for v in override if v not in base]
+    return override
+
+
+def _target(volume: str | dict[str, Any]) -> str:
+    return str(volume["target"]) if isinstance(volume, dict) else str(volume).split(":")[1]
+
+
+def load_compose(env: Mapping[str, str] | None = None, *overrides: Path) -> dict[str, Service]:
+    """The services of docker-compose.yml (merged with `overrides`, as `docker compose
+    -f docker-compose.yml -f OVERRIDE` merges them), variables substituted from `env`."""
     data = yaml.safe_load(COMPOSE.read_text())
+    for path in overrides:
+        data = merge(data, yaml.safe_load(path.read_text()))
     services: dict[str, Service] = interpolate(data["services"], env or {})
     return services
+
+
+def enabled(services: Mapping[str, Service], *profiles: str) -> set[str]:
+    """The services compose starts with `profiles` active."""
+    return {
+        n
+        for n, s in services.items()
+        if not s.get("profiles") or set(s["profiles"]) & set(profiles)
+    }
 
 
 def is_broker(service: Service) -> bool:
@@ -95,7 +137,7 @@ def is_broker(service: Service) -> bool:
 
 
 def is_nats(service: Service) -> bool:
-    """A node of the service cluster on NATS (profile `cluster`)."""
+    """A node of the service cluster on NATS (docker-compose.cluster.yml)."""
     return str(service.get("image", "")).startswith("nats:")
 
 
@@ -146,6 +188,7 @@ def make_accounts(directory: Path) -> dict[str, str]:
             "PASSWD_FILE": str(passwd),
             "MODE": "0644",
             "KEYS_DIR": str(directory / "keys"),
+            "HEALTH_DIR": str(directory / "health"),
         },
     )
     values = {}
@@ -268,15 +311,13 @@ def test_every_user_cluster_listener_uses_the_user_name_as_client_id() -> None:
     assert blocks, "no listener"
     for block in blocks:
         assert ("use_username_as_clientid", "true") in block, config
-    # ... and so does the commented TLS listener, once uncommented
-    uncommented = [
-        line.lstrip("# ").strip()
-        for line in config.read_text().splitlines()
-        if line.startswith("#   ")
-    ]
-    tls = [(k, v.strip()) for k, _, v in (line.partition(" ") for line in uncommented if line)]
-    tls_blocks = listener_blocks(tls)
-    assert [b for b in tls_blocks if ("certfile", "/mosquitto/config/certs/server.crt") in b]
+    # ... and so do the listeners it includes: none by default, the TLS overlay's
+    included = dict(settings(config))["include_dir"]
+    assert mounts(load_compose(SETTINGS)["broker-user"])[included] == LISTENERS
+    assert list(LISTENERS.glob("*.conf")) == []
+    tls = load_compose(SETTINGS, TLS)["broker-user"]
+    tls_blocks = listener_blocks(settings(mounts(tls)[included] / "tls.conf"))
+    assert [b for b in tls_blocks if ("certfile", "/mosquitto/certs/server.crt") in b]
     for block in tls_blocks:
         assert ("use_username_as_clientid", "true") in block, block
 
@@ -324,8 +365,8 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
         assert command[command.index("--rate") + 1] == _default("rate")
         assert command[command.index("--burst") + 1] == _default("burst")
     assert environment(services["worker"])["LAAS_USERNAME"] == "laas-worker"
-    assert environment(services["simulator"])["LAAS_PASSWORD"] == "p"
-    # no password on a command line, except the broker health check's (laas-health)
+    assert environment(services["simulator"])["LAAS_DEVICE_PASSWORD"] == "p"
+    # no password on a command line, not even the broker health check's (laas-health)
     for name, service in services.items():
         words = (
             [*service.get("command", []), *service["healthcheck"]["test"]]
@@ -333,13 +374,21 @@ def test_the_acls_give_every_compose_account_what_it_needs() -> None:
             else list(service.get("command", []))
         )
         leaked = {w for w in words if w in SECRETS.values()}
-        assert leaked <= ({"h"} if is_broker(service) else set()), name
+        assert leaked == set(), name
+    # the health check's password reaches mosquitto_sub in a mounted option file
+    for name, service in services.items():
+        if is_broker(service):
+            options = mounts(service)["/mosquitto/health/mosquitto_sub"]
+            assert options == HEALTH / "mosquitto_sub", name
+            assert environment(service)["XDG_CONFIG_HOME"] == "/mosquitto/health", name
 
 
 def test_compose_refuses_to_start_without_passwords_or_keys() -> None:
     with pytest.raises(Unset, match=re.escape("compose-accounts.sh")):
         load_compose({})
     for name in SETTINGS:
+        if name == "LAAS_HEALTH_PASSWORD":  # in the health check's option file instead
+            continue
         for missing in ({k: v for k, v in SETTINGS.items() if k != name}, {**SETTINGS, name: ""}):
             with pytest.raises(Unset, match=re.escape(f"{name}: unset; run deploy/security/")):
                 load_compose(missing)
@@ -356,7 +405,7 @@ PARTICIPANTS = ("simulator", "owntracks", "cam")  # services that are participan
 
 
 def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
-    services = load_compose(SETTINGS)
+    services = load_compose(SETTINGS, CLUSTER)
     keys = {}
     for name, service in services.items():
         if is_broker(service) or is_nats(service):
@@ -380,7 +429,7 @@ def test_every_python_service_has_its_own_key_and_pins_the_worker() -> None:
         if command[:2] == ["ldm", "core"]:
             pins = [command[i + 1] for i, w in enumerate(command) if w == "--trust-service"]
             assert pins == [f"laas={PUBLIC_KEYS['LAAS_SERVICE_KEY']}"], name
-    # Profile `cluster`: the service core on NATS stands in for core-service, and the
+    # The cluster override: the service core on NATS stands in for core-service, and the
     # regional workers and their standbys are the one laas service (pinned once), so
     # they mount the same keys.
     regional = ("worker-1of2", "worker-2of2", "worker-1of2-standby", "worker-2of2-standby")
@@ -426,7 +475,7 @@ def test_cores_and_worker_match_the_topology() -> None:
     assert environment(worker)["LAAS_CLUSTER"] == "mqtt://broker-service:1883"
     sim = services["simulator"]["command"]
     assert sim[:2] == ["laas", "simulate"]
-    assert sim[sim.index("--account-prefix") + 1] == "sim-"
+    assert "--device-accounts" in sim and sim[sim.index("--prefix") + 1] == "sim-"
     assert sim[sim.index("--cluster") + 1] == "mqtt://broker-user:1883"
     # configuration by environment
     changed = load_compose({**SETTINGS, "LDM_ROTATION_PERIOD": "30", "LAAS_LOG_LEVEL": "debug"})
@@ -479,23 +528,38 @@ def show_key(path: Path) -> str:
     ).stdout.strip()
 
 
-def test_the_cluster_profile_runs_three_nats_nodes_and_regional_workers_with_standbys(
+def test_the_cluster_override_runs_three_nats_nodes_and_regional_workers_with_standbys(
     tmp_path: Path,
 ) -> None:
-    """Profile `cluster`: three NATS nodes whose config nats-server itself accepts (with
-    the values compose gives each node), a service core and two regional workers with a
-    standby each, all given every node; each command is one the CLI takes."""
+    """docker-compose.cluster.yml over docker-compose.yml: three NATS nodes whose config
+    nats-server itself accepts (with the values compose gives each node), a service core
+    and two regional workers with a standby each, all given every node, in place of
+    broker-service, core-service and worker, which do not start; each command is one
+    the CLI takes, and the core is limited like the other cores."""
     from laas.cli import build_parser
+    from ldm.cli import _parser as build_ldm_parser
     from ldm.local.nats import find_nats_server
 
-    services = load_compose(SETTINGS)
-    cluster = {n for n, s in services.items() if s.get("profiles") == ["cluster"]}
+    services = load_compose(SETTINGS, CLUSTER)
     nodes = ["nats-1", "nats-2", "nats-3"]
     workers = ["worker-1of2", "worker-2of2", "worker-1of2-standby", "worker-2of2-standby"]
-    assert cluster == {*nodes, "core-service-cluster", *workers}
+    cluster = {*nodes, "core-service-cluster", *workers}
+    single = {"broker-service", "core-service", "worker"}  # what the cluster replaces
+    base = {"broker-user", "broker-backbone", "core-user"}
+    assert enabled(services) == base | cluster
+    assert enabled(services, "bridges") == base | cluster | {"owntracks", "cam"}
+    assert enabled(load_compose(SETTINGS)) == base | single  # without the override
+    for name in enabled(services, "bridges"):
+        assert set(services[name].get("depends_on", {})) <= enabled(services, "bridges"), name
     urls = "mqtt://nats-1:1883,nats-2:1883,nats-3:1883"
     core = services["core-service-cluster"]["command"]
     assert core[core.index("--cluster") + 1] == urls
+    parsed = build_ldm_parser().parse_args(core[1:])
+    mosquitto_core = build_ldm_parser().parse_args(services["core-service"]["command"][1:])
+    for limit in ("grace", "idle_timeout", "rate", "burst", "rotation_period", "data_qos"):
+        assert getattr(parsed, limit) == getattr(mosquitto_core, limit), limit
+    # on NATS every hop waits about 10 s for the leaders a failed node's streams elect
+    assert parsed.max_age == 10.0
     for name in workers:
         service = services[name]
         assert environment(service)["LAAS_CLUSTER"] == urls
@@ -503,6 +567,7 @@ def test_the_cluster_profile_runs_three_nats_nodes_and_regional_workers_with_sta
         assert a.region == ("1/2" if "1of2" in name else "2/2")
         assert a.standby == name.endswith("-standby")
         assert a.identity is not None
+        assert a.max_age == parsed.max_age
         health = service["healthcheck"]["test"]
         assert health[health.index("service") + 2] == f"laas-{name[7:11]}"
     server = find_nats_server()
@@ -568,7 +633,8 @@ def test_compose_accounts_script_makes_every_account_once(tmp_path: Path) -> Non
             "-m",
             "laas.cli",
             "simulate",
-            "--account-prefix",
+            "--device-accounts",
+            "--prefix",
             "sim-",
             "--list-accounts",
         ],
@@ -609,6 +675,8 @@ class LocalCompose:
             return self.passwd
         if path.parent == KEYS:
             return self.keys / path.name
+        if path.parent == HEALTH:
+            return self.workdir / "health" / path.name
         return path
 
     def local(self, value: str, service: Service | None = None) -> str:
@@ -673,7 +741,7 @@ class LocalCompose:
             env = dict(os.environ)
         else:
             for host in mounts(service).values():
-                assert self.host_file(host).is_file(), f"{name}: nothing to mount at {host}"
+                assert self.host_file(host).exists(), f"{name}: nothing to mount at {host}"
             argv = self.argv(service["command"], service)
             env = self.env(service)
         log = open(self.workdir / f"{name}.log", "wb")  # noqa: SIM115
@@ -690,7 +758,12 @@ class LocalCompose:
             if not Path(argv[0]).name.startswith("mosquitto_"):
                 raise AssertionError(f"{name}: unknown broker check {argv}")
             argv += ["-h", "127.0.0.1", "-p", str(self.ports[name])]
-        return subprocess.run(argv, env=self.env(self.services[name]), capture_output=True)
+        env = self.env(self.services[name])
+        if "XDG_CONFIG_HOME" in env:  # a mounted directory of option files: the host's
+            for target, host in mounts(self.services[name]).items():
+                if str(Path(target).parent) == env["XDG_CONFIG_HOME"]:
+                    env["XDG_CONFIG_HOME"] = str(self.host_file(host).parent)
+        return subprocess.run(argv, env=env, capture_output=True)
 
     def wait_healthy(self, name: str, timeout: float = 20.0) -> None:
         deadline = time.monotonic() + timeout
@@ -727,6 +800,9 @@ class LocalCompose:
             self.stop(name)
 
 
+OWN_MAP = "my-area.geojson"  # an operator's map, in LAAS_MAPS_DIR
+
+
 @pytest.fixture
 def local_compose() -> Iterator[LocalCompose]:
     need_mosquitto()
@@ -735,7 +811,17 @@ def local_compose() -> Iterator[LocalCompose]:
     # deploy/security/compose-accounts.sh, then what `LAAS_SIM_SPEEDUP=25 docker compose
     # --profile sim up` would substitute from the .env it wrote
     secrets = make_accounts(workdir)
-    env = {**secrets, "LAAS_SIM_SPEEDUP": "25"}
+    # ... with the operator's own map in the maps folder, served without a rebuild
+    # (LAAS_MAPS_DIR mounted at /srv/laas/maps): the Hamburg map under another name
+    maps = workdir / "my-maps"
+    maps.mkdir()
+    shutil.copyfile(ROOT / "maps" / "messe-hamburg.geojson", maps / OWN_MAP)
+    env = {
+        **secrets,
+        "LAAS_SIM_SPEEDUP": "25",
+        "LAAS_MAPS_DIR": str(maps),
+        "LAAS_MAP": f"/srv/laas/maps/{OWN_MAP}",
+    }
     deployment = LocalCompose(load_compose(env), workdir, secrets)
     try:
         yield deployment
@@ -795,6 +881,8 @@ def test_compose_services_serve_the_simulator(local_compose: LocalCompose) -> No
     assert public["core-user"] == local_compose.secrets["LAAS_CORE_KEY"]
     worker = local_compose.log("worker")
     assert f"identity (participants pin it): {public['laas-worker']}" in worker, worker
+    # it served the operator's map from the maps folder
+    assert f"of {local_compose.workdir / 'my-maps' / OWN_MAP} " in worker, worker
     for name in ("user", "service"):
         log = local_compose.log(f"core-{name}")
         assert f"its key (participants pin it): {public[f'core-{name}']}" in log, log
@@ -908,3 +996,37 @@ def test_compose_bridges_serve_cam_stations_and_phones_under_the_shipped_acl(
         assert "message_size_limit" not in log, log
         warnings = [line for line in log.splitlines() if "Warning" in line or "Note" in line]
         assert warnings == [], warnings
+
+
+def test_the_brokers_run_the_mosquitto_series_the_tests_run() -> None:
+    """The image is pinned to a 2.0 release (2.1 deprecates password_file and acl_file),
+    the series of the mosquitto these tests start."""
+    services = load_compose(SETTINGS)
+    images = {s["image"] for s in services.values() if "mosquitto" in str(s.get("image"))}
+    assert images == {MOSQUITTO_IMAGE}
+    tag = MOSQUITTO_IMAGE.split(":", 1)[1]
+    assert re.fullmatch(r"2\.0\.\d+", tag), f"pin a 2.0.x release, not {tag!r}"
+    binary = find_mosquitto()
+    if binary is None:
+        pytest.skip("mosquitto is not installed: the series it runs cannot be compared")
+    help_text = subprocess.run([binary, "-h"], capture_output=True, text=True).stdout
+    found = re.search(r"mosquitto version (\d+\.\d+)\.\d+", help_text)
+    assert found and found[1] == "2.0", help_text[:80]
+
+
+def test_env_example_gives_the_defaults_of_the_compose_files() -> None:
+    """Each non-secret value of deploy/env.example is the default every compose file
+    (docker-compose.yml and its overrides) uses for it when unset, and each is used."""
+    example = dict(
+        line.split("=", 1)
+        for line in (ROOT / "deploy" / "env.example").read_text().splitlines()
+        if line and not line.startswith("#")
+    )
+    texts = "".join(path.read_text() for path in (COMPOSE, CLUSTER, TLS))
+    used = {m[0]: m[1] for m in re.findall(r"\$\{(\w+):-([^}]*)\}", texts)}
+    for name, value in example.items():
+        if not value:  # secrets and keys: compose-accounts.sh fills them in
+            continue
+        assert name in used, f"{name} of env.example is used by no compose file"
+        defaults = set(re.findall(rf"\$\{{{name}:-([^}}]*)\}}", texts))
+        assert defaults == {value}, (name, defaults, value)

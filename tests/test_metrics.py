@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml  # type: ignore[import-untyped]
@@ -226,15 +227,18 @@ def _check_cores(user: Scrape, service: Scrape) -> None:
 
 def test_the_scrape_config_covers_every_compose_service_with_metrics() -> None:
     root = Path(__file__).resolve().parents[1]
-    compose = yaml.safe_load((root / "docker-compose.yml").read_text())
+    services: dict[str, dict[str, Any]] = {}  # docker-compose.yml and its NATS override
+    for file in ("docker-compose.yml", "docker-compose.cluster.yml"):
+        for name, service in yaml.safe_load((root / file).read_text())["services"].items():
+            services[name] = {**services.get(name, {}), **service}
     serving = {}
-    for name, service in compose["services"].items():
+    for name, service in services.items():
         env = service.get("environment", {})
         port = env.get("LDM_METRICS_PORT") or env.get("LAAS_METRICS_PORT")
         if port is not None:
             assert str(port) in [str(p) for p in service.get("expose", [])], name
             serving[name] = f"{name}:{port}"
-    cluster = {  # profile `cluster`
+    cluster = {  # docker-compose.cluster.yml
         "core-service-cluster",
         "worker-1of2",
         "worker-2of2",

@@ -10,7 +10,9 @@
 #    deploy/security/make-passwd.sh (`ldm passwd`, passwords on its stdin): one salted
 #    hash per account. Other accounts already in it (your participants, added with
 #    make-passwd.sh) are kept.
-# 3. deploy/security/keys/ (or $KEYS_DIR) gets each service's Ed25519 identity key
+# 3. deploy/security/health/mosquitto_sub (or in $HEALTH_DIR): the brokers' health check
+#    options, user laas-health and its password (not on the check's command line).
+# 4. deploy/security/keys/ (or $KEYS_DIR) gets each service's Ed25519 identity key
 #    (`ldm keys new`) unless the file exists: an existing key is never overwritten. The
 #    PUBLIC keys go into ENV_FILE (as `ldm keys show` prints them from the key files),
 #    where compose finds them for the cores' --trust-service and the simulator's pins.
@@ -34,13 +36,14 @@
 #   core-service.key   (none)             the service-cluster core's signatures
 #
 # The brokers run as uid 1883 in their containers and read the password file through a
-# read-only mount: as root the script gives it to 1883 with mode 0640; otherwise it makes
-# it 0644 (hashes only, of random passwords) unless MODE is set. The Python services run
-# as the image's user, uid 10001 (Dockerfile; KEY_UID), and each reads its own key
-# through a read-only mount: as root the script gives each new key to that uid with mode
-# 0400; otherwise a new key is 0644 (unless KEY_MODE is set) in a keys directory of mode
-# 0700, which keeps other users of the host out. Needs the ldm command (on PATH, else
-# the repository's .venv/bin/ldm, else python3 -m ldm), not Mosquitto.
+# read-only mount: as root the script gives it to 1883 with mode 0640; otherwise it
+# makes it 0644 (hashes only, of random passwords) unless MODE is set (make-passwd.sh).
+# The Python services run as the image's user, uid 10001 (Dockerfile; KEY_UID), and each
+# reads its own key through a read-only mount: as root the script gives each new key to
+# that uid with mode 0400; otherwise a new key is 0644 (unless KEY_MODE is set) in a
+# keys directory of mode 0700, which keeps other users of the host out. Needs the ldm
+# command (on PATH, else the repository's .venv/bin/ldm, else python3 -m ldm), not
+# Mosquitto.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 root=$(cd "$here/../.." && pwd)
@@ -92,13 +95,27 @@ for pair in \
   done
 done
 
-if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
-  printf '%s\n' "${entries[@]}" | MODE=0640 "$here/make-passwd.sh" "$passwd" -
-  chown 1883:1883 "$passwd"
-else
-  printf '%s\n' "${entries[@]}" | MODE=${MODE:-0644} "$here/make-passwd.sh" "$passwd" -
-fi
+# The env file holds these accounts' passwords: the file gets them (REPLACE=1); the
+# other accounts in it are kept. make-passwd.sh makes it readable by the brokers.
+printf '%s\n' "${entries[@]}" | REPLACE=1 "$here/make-passwd.sh" "$passwd" -
 echo "accounts of docker-compose.yml in $passwd"
+
+# The brokers' health check logs in as laas-health with the options in this file (read
+# by mosquitto_sub from $XDG_CONFIG_HOME), so the password is on no command line that
+# `docker inspect` shows. Rewritten each run, from the env file's password; readable by
+# the brokers (uid 1883) as the password file is.
+health=${HEALTH_DIR:-$here/health}
+[ -d "$health" ] || mkdir -m 0755 "$health"
+tmp=$(mktemp "$health/.mosquitto_sub.XXXXXX")
+printf -- '-u laas-health\n-P %s\n' "$(value LAAS_HEALTH_PASSWORD)" >"$tmp"
+if [ "$(id -u)" = 0 ] && [ -z "${MODE:-}" ]; then
+  chmod 0640 "$tmp"
+  chown 1883:1883 "$tmp"
+else
+  chmod "${MODE:-0644}" "$tmp"
+fi
+mv "$tmp" "$health/mosquitto_sub"
+echo "the brokers' health check options in $health/mosquitto_sub"
 
 # The identity keys: made once, never overwritten; ENV_FILE holds their public keys.
 if command -v ldm >/dev/null; then

@@ -7,8 +7,17 @@
 # USER=PASSWORD on stdout (hand it to that account's owner; it is not kept anywhere
 # else). The entry - reads USER[=PASSWORD] lines from stdin, which keeps passwords out
 # of the process list. FILE is created if missing and stores only salted hashes
-# (Mosquitto 2's PBKDF2-SHA512 format); other accounts in it are kept. Keep it out of
-# git and readable by the broker only (the script sets mode 0640 unless MODE is set).
+# (Mosquitto 2's PBKDF2-SHA512 format). Adding accounts never changes another one: the
+# accounts already in FILE keep their passwords, including one named again here (a note
+# on stderr says so), unless REPLACE=1 is set, which gives those the new passwords.
+#
+# Who can read FILE: the brokers of docker-compose.yml (eclipse-mosquitto) read it as
+# uid 1883 through a read-only mount. Run as root, the script makes FILE mode 0640 and
+# gives it to 1883:1883 (OWNER=USER:GROUP gives it to another, e.g. OWNER=mosquitto: for
+# a Mosquitto installed on the host); run as another user, it makes FILE mode 0644 (it
+# holds salted hashes of the passwords, never the passwords), as a non-root user cannot
+# give a file away. MODE=... sets the mode instead (then no owner is changed unless
+# OWNER is set). The script says on stderr which it did. Keep FILE out of git.
 #
 # The ldm command is the one on PATH, else the repository's .venv/bin/ldm (after
 # `pip install -e .`), else `python3 -m ldm` where python3 can import ldm.
@@ -31,4 +40,24 @@ else
 fi
 file=$1
 shift
-exec "${ldm[@]}" passwd --mode "${MODE:-0640}" -- "$file" "$@"
+owner=${OWNER:-}
+if [ -n "${MODE:-}" ]; then
+  mode=$MODE
+elif [ "$(id -u)" = 0 ]; then
+  mode=0640
+  owner=${owner:-1883:1883}
+else
+  mode=0644
+fi
+replace=()
+if [ "${REPLACE:-0}" = 1 ]; then
+  replace=(--replace)
+fi
+"${ldm[@]}" passwd --mode "$mode" "${replace[@]}" -- "$file" "$@"
+if [ -n "$owner" ]; then
+  chown "$owner" "$file"
+  echo "$0: $file is mode $mode, owned by $owner (eclipse-mosquitto reads it as 1883)" >&2
+else
+  echo "$0: $file is mode $mode, owned by $(id -un 2>/dev/null || id -u); Mosquitto reads it as another" \
+    "user only if the mode lets others read (0644)" >&2
+fi

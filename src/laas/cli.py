@@ -18,6 +18,7 @@ from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.progress import progress_printer
 from ldm import BrokerSettings, LdmError
+from ldm.ops.help import Parser, add_version
 from ldm.ops.logs import configure
 from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
 
@@ -385,11 +386,11 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     scenario, hdmap = _scenario(a)
     trace = simulate_with(hdmap, scenario, a.seed, sigma_pos=a.sigma_pos, sigma_vel=a.sigma_vel)
     if a.list_accounts:
-        print("\n".join(accounts(trace, a.account_prefix or "").values()))
+        print("\n".join(accounts(trace, a.prefix).values()))
         return 0
     cluster = _broker(a)
-    if a.account_prefix is not None:  # one account per road user, one password for all
-        cluster = broker_settings(cluster.url, a.ca_file, a.account_prefix, a.password_env)
+    if a.device_accounts:  # one account per road user, one password for all
+        cluster = broker_settings(cluster.url, a.ca_file, "device", a.device_password_env)
     print(
         f"laas simulate: {len(trace.fixes)} fixes of {len(scenario.users)} road users "
         f"at {a.speedup:g}x real time",
@@ -398,7 +399,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     live = run_participants(
         cluster,
         trace,
-        account_prefix=a.account_prefix,
+        account_prefix=a.prefix if a.device_accounts else None,
         speedup=a.speedup,
         reply_timeout=max(5.0, 2 * a.max_age + 1.0),  # the participant's own limit, and more
         max_age=a.max_age,
@@ -463,7 +464,7 @@ def _connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
         "--ca-file",
         type=Path,
         default=os.environ.get(f"{env_prefix}_CA_FILE"),
-        help="CA certificates for an mqtts:// broker",
+        help=f"CA certificates for an mqtts:// broker (env {env_prefix}_CA_FILE)",
     )
 
 
@@ -624,12 +625,17 @@ def _add_demo_and_bench(sub: Any) -> None:
     p.add_argument("--participants", type=int, default=200, help="simulated participants")
     p.add_argument("--rate", type=float, default=1.0, help="fixes per participant per second")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of load")
-    p.add_argument("--brokers", choices=["auto", "embedded", "mosquitto"], default="auto")
+    p.add_argument(
+        "--brokers",
+        choices=["auto", "embedded", "mosquitto"],
+        default="auto",
+        help="broker kind (auto: Mosquitto if installed, else the embedded broker)",
+    )
     p.add_argument(
         "--rotation-period", type=float, default=120.0, help="pseudonym rotation, s (LDM default)"
     )
     p.add_argument("--processes", type=int, help="participant processes (default: 2 to 4)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated GNSS errors")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument(
         "--connect-rate",
@@ -690,7 +696,8 @@ def _add_worker(sub: Any) -> None:
     p.add_argument(
         "--map",
         default=os.environ.get("LAAS_MAP", str(maps_dir() / "messe-hamburg.geojson")),
-        help="GeoJSON lane map (env LAAS_MAP; default: the Hamburg test road)",
+        help="GeoJSON lane map (env LAAS_MAP; default: the Hamburg test road of the "
+        "bundled maps, in the folder LAAS_MAPS names if set)",
     )
     p.add_argument(
         "--data-qos",
@@ -703,6 +710,7 @@ def _add_worker(sub: Any) -> None:
         "--log-level",
         default=os.environ.get("LAAS_LOG_LEVEL", "warning"),
         choices=["debug", "info", "warning", "error"],
+        help="log lines of this level and above, on stderr (env LAAS_LOG_LEVEL)",
     )
     p.add_argument(
         "--identity",
@@ -714,7 +722,8 @@ def _add_worker(sub: Any) -> None:
     p.add_argument(
         "--endorsement",
         default=os.environ.get("LAAS_ENDORSEMENT"),
-        help="a trust anchor's endorsement of the identity (`ldm keys endorse`)",
+        help="a trust anchor's endorsement of the identity (`ldm keys endorse`; env "
+        "LAAS_ENDORSEMENT)",
     )
     p.add_argument(
         "--region",
@@ -764,14 +773,18 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
     _max_age_arg(p, "drop replies older than this, and fail a request after 2x this + 1 s")
     p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
+    from laas.bridges.commands import device_account_args
+
+    device_account_args(p, "road user")
     p.add_argument(
-        "--account-prefix",
-        default=os.environ.get("LAAS_ACCOUNT_PREFIX"),
-        help="log each road user in as its own account, PREFIX + user, with the password "
-        "in --password-env (env LAAS_ACCOUNT_PREFIX)",
+        "--prefix",
+        default="sim-",
+        help="the road users' client ids (and accounts) with --device-accounts: PREFIX + user",
     )
     p.add_argument(
-        "--list-accounts", action="store_true", help="print the accounts the users need, exit"
+        "--list-accounts",
+        action="store_true",
+        help="print the accounts the users need with --device-accounts, and exit",
     )
     p.add_argument(
         "--service-key",
@@ -837,7 +850,12 @@ def _add_offline(sub: Any) -> None:
         help="with --suite: report default mode's posterior without the calibration map",
     )
     p.add_argument("--runs", type=int, default=20, help="seeded runs per configuration")
-    p.add_argument("--mode", choices=["both", "default", "paper"], default="both")
+    p.add_argument(
+        "--mode",
+        choices=["both", "default", "paper"],
+        default="both",
+        help="lane filter to evaluate (both: each, side by side)",
+    )
     p.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--plot", metavar="DIR", help="also write the pictures to DIR")
@@ -950,9 +968,10 @@ def _add_offline(sub: Any) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="laas", description="Location as a Service: lane-level positioning at the edge."
     )
+    add_version(parser, "laas")
     sub = parser.add_subparsers(dest="command", required=True)
 
     _add_demo_and_bench(sub)

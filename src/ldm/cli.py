@@ -26,6 +26,7 @@ from ldm.config import CoreConfig, build
 from ldm.core.core import Core
 from ldm.errors import ConfigError, LdmError, PasswordFileError
 from ldm.local.embedded import EmbeddedBroker
+from ldm.ops.help import Parser, add_version
 from ldm.ops.logs import configure
 from ldm.ops.passwd import random_password, set_passwords
 from ldm.ops.process import broker_settings, operations_args, start_metrics, wait_for_signal
@@ -36,7 +37,8 @@ __all__ = ["core_config", "main", "password_entries", "pins"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ldm", description=__doc__.splitlines()[0])
+    parser = Parser(prog="ldm", description=__doc__.splitlines()[0])
+    add_version(parser, "ldm")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -148,22 +150,27 @@ def _parser() -> argparse.ArgumentParser:
     new = keys_sub.add_parser(
         "new", help="write a new private key (mode 0600), print its public key"
     )
-    new.add_argument("file", type=Path, metavar="FILE")
+    new.add_argument("file", type=Path, metavar="FILE", help="the key file to write")
     show = keys_sub.add_parser("show", help="print the public key of a private key file")
-    show.add_argument("file", type=Path, metavar="FILE")
+    show.add_argument("file", type=Path, metavar="FILE", help="a private key file")
     endorse_ = keys_sub.add_parser(
         "endorse", help="print an anchor's endorsement of a service identity"
     )
-    endorse_.add_argument("anchor", type=Path, metavar="ANCHOR_FILE")
-    endorse_.add_argument("service", metavar="SERVICE")
-    endorse_.add_argument("identity", metavar="IDENTITY_PUBLIC_KEY")
+    endorse_.add_argument(
+        "anchor", type=Path, metavar="ANCHOR_FILE", help="the trust anchor's private key file"
+    )
+    endorse_.add_argument("service", metavar="SERVICE", help="the service name, e.g. laas")
+    endorse_.add_argument(
+        "identity", metavar="IDENTITY_PUBLIC_KEY", help="the service's public identity key"
+    )
 
     passwd = sub.add_parser(
         "passwd",
         help="create or extend a Mosquitto password file",
         description="Create or extend a Mosquitto password file (PBKDF2-SHA512, as "
-        "mosquitto_passwd writes it). Other accounts in FILE are kept; a USER without "
-        "=PASSWORD gets a random password, printed once as USER=PASSWORD.",
+        "mosquitto_passwd writes it). Other accounts in FILE are kept, and so is the "
+        "password of an account FILE already holds, unless --replace is given; a USER "
+        "without =PASSWORD gets a random password, printed once as USER=PASSWORD.",
     )
     passwd.add_argument("file", type=Path, metavar="FILE", help="the password file")
     passwd.add_argument(
@@ -174,6 +181,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     passwd.add_argument(
         "--mode", type=_octal, default=0o640, help="file mode, octal (default 0640)"
+    )
+    passwd.add_argument(
+        "--replace",
+        action="store_true",
+        help="give accounts FILE already holds the new password (default: keep theirs)",
     )
     return parser
 
@@ -304,15 +316,22 @@ def _passwd(args: argparse.Namespace) -> int:
     """`ldm passwd`: errors go to stderr, stdout carries only the generated passwords."""
     try:
         passwords, generated = password_entries(args.entries)
-        set_passwords(args.file, passwords, mode=args.mode)
+        kept = set_passwords(args.file, passwords, mode=args.mode, replace=args.replace)
     except PasswordFileError as exc:
         print(f"ldm passwd: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"ldm passwd: cannot write {args.file}: {exc.strerror or exc}", file=sys.stderr)
         return 1
+    for user in kept:
+        print(
+            f"ldm passwd: {user} is already in {args.file}: its password was kept "
+            "(--replace gives it a new one)",
+            file=sys.stderr,
+        )
     for user in generated:
-        print(f"{user}={passwords[user]}", flush=True)
+        if user not in kept:
+            print(f"{user}={passwords[user]}", flush=True)
     return 0
 
 
@@ -360,6 +379,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             _core(args)
     except LdmError as exc:
-        print(f"ldm: {exc}", flush=True)
+        print(f"ldm {args.command}: {exc}", file=sys.stderr, flush=True)
         return 2
     return 0

@@ -426,8 +426,10 @@ def test_gga_and_gst_after_the_rmc_of_their_epoch_are_kept() -> None:
 
 
 def test_a_10_hz_receiver_with_rmc_once_a_second_gets_every_epoch_through() -> None:
-    """GGA at every epoch (10 Hz), RMC at whole seconds: 40 epochs, 40 fixes, each with
-    the speed and course of the latest RMC."""
+    """GGA at every epoch (10 Hz), RMC at whole seconds: 40 epochs, 40 fixes; the
+    GGA-only epochs get the speed and course of their positions (positions to 1e-5
+    minutes: within 0.3 m/s and 3 degrees over 0.1 s; tests/bridges/test_nmea_rates.py
+    has a car that brakes)."""
     fixes = _drive(40, step_ms=100)
     lines = []
     for f in fixes:
@@ -435,7 +437,8 @@ def test_a_10_hz_receiver_with_rmc_once_a_second_gets_every_epoch_through() -> N
         lines += [s["GGA"]] + ([s["RMC"]] if f.timestamp % 1000 == 0 else [])
     read = [r for r in nmea_fixes(lines) if isinstance(r, GpsMeasurement)]
     assert [r.timestamp for r in read] == [f.timestamp for f in fixes]
-    assert all(r.speed == pytest.approx(10.0, abs=0.01) and r.heading == 45.0 for r in read)
+    assert all(r.speed == pytest.approx(10.0, abs=0.3) for r in read), [r.speed for r in read]
+    assert all(r.heading == pytest.approx(45.0, abs=3.0) for r in read)
 
 
 def test_a_gga_only_receiver_is_dated_by_the_clock_and_its_motion_derived() -> None:

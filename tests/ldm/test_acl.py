@@ -107,8 +107,9 @@ def shipped_user_broker(
     config = config.replace("/mosquitto/config/", f"{directory}/")
     path = directory / "mosquitto.conf"
     path.write_text(config)
+    (directory / "listeners.d").mkdir(exist_ok=True)  # as compose mounts: no further listener
     for file in directory.iterdir():
-        file.chmod(0o644)
+        file.chmod(0o755 if file.is_dir() else 0o644)
     directory.chmod(0o755)  # mosquitto started as root reads them as "mosquitto"
     return path
 

@@ -65,7 +65,7 @@ def test_ldm_core_reports_a_missing_password_variable_without_secrets() -> None:
         timeout=30,
     )
     assert result.returncode == 2
-    assert "LDM_PASSWORD is not set" in result.stdout
+    assert "LDM_PASSWORD is not set" in result.stderr and result.stdout == ""
 
 
 def test_ldm_core_rejects_a_bad_url() -> None:
@@ -75,4 +75,4 @@ def test_ldm_core_rejects_a_bad_url() -> None:
         text=True,
         timeout=30,
     )
-    assert result.returncode == 2 and "mqtt://HOST:PORT" in result.stdout
+    assert result.returncode == 2 and "mqtt://HOST:PORT" in result.stderr  # errors: stderr

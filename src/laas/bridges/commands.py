@@ -61,11 +61,13 @@ def _pool(a: argparse.Namespace, own: BrokerSettings, hdmap: HdMap | None = None
     return DevicePool(config, hdmap=hdmap)
 
 
-def _pool_args(p: argparse.ArgumentParser) -> None:
+def device_account_args(p: argparse.ArgumentParser, devices: str = "device") -> None:
+    """--device-accounts and --device-password-env: the one spelling of per-device
+    accounts in `laas simulate`, `gpsd`, `owntracks` and `cam`."""
     p.add_argument(
         "--device-accounts",
         action="store_true",
-        help="log each device in as its own broker account, named as its client id "
+        help=f"log each {devices} in as its own broker account, named as its client id "
         "(PREFIX + names), with the password in --device-password-env",
     )
     p.add_argument(
@@ -73,6 +75,10 @@ def _pool_args(p: argparse.ArgumentParser) -> None:
         default="LAAS_DEVICE_PASSWORD",
         help="environment variable holding the device accounts' password",
     )
+
+
+def _pool_args(p: argparse.ArgumentParser) -> None:
+    device_account_args(p)
     p.add_argument(
         "--service-key",
         default=os.environ.get("LAAS_SERVICE_KEY"),
@@ -93,6 +99,7 @@ def _pool_args(p: argparse.ArgumentParser) -> None:
         "--log-level",
         default=os.environ.get("LAAS_LOG_LEVEL", "warning"),
         choices=["debug", "info", "warning", "error"],
+        help="log lines of this level and above, on stderr (env LAAS_LOG_LEVEL)",
     )
 
 

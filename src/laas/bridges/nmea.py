@@ -11,9 +11,14 @@ GGA has a fix (quality > 0):
                        the reference clock's (`now`)
     altitude           GGA (0 without one)
     accuracy           GST: hypot(sd_lat, sd_lon), 1-sigma latitude and longitude errors, m
-    speed, heading     RMC, else VTG, else those of the last 2 s, else from the position
-                       change since the previous fix (at most 5 s back), else 0
+    speed, heading     RMC, else VTG, else from the position change since the previous
+                       fix (at most 5 s back), as gpsd does, else those of the last 2 s,
+                       else 0
     RMC and VTG speed are in knots:  v [m/s] = knots * 1852 / 3600
+
+A 10 Hz receiver that sends GGA at every epoch and RMC once a second gets, on the GGA-only
+epochs, the speed and heading of its own positions (a car braking is seen braking), not
+the last RMC's repeated. A fix that did not move keeps the last heading.
 
 An epoch is complete, and its fix sent, once it holds every sentence type the previous
 epoch held, or else when the next epoch begins (or the input ends): a receiver's first
@@ -76,6 +81,7 @@ class NmeaReader:
         self._last_time: dt.datetime | None = None  # of the last fix
         self._last_position: tuple[float, float] | None = None
         self._motion: tuple[dt.datetime, float, float] | None = None  # when, speed, course
+        self._last_course = 0.0  # of the last fix
 
     def feed(self, line: str) -> list[GpsMeasurement | Malformed]:
         """One line of the receiver: the fixes (and problems) it completes."""
@@ -152,6 +158,7 @@ class NmeaReader:
             accuracy = math.hypot(float(gst.std_dev_latitude), float(gst.std_dev_longitude))
         speed, heading = self._motion_of(when, s, (lat, lon))
         self._date, self._last_time, self._last_position = when.date(), when, (lat, lon)
+        self._last_course = heading % 360.0
         return GpsMeasurement(
             timestamp=round(when.timestamp() * 1000),
             latitude=lat,
@@ -185,14 +192,14 @@ class NmeaReader:
         self, when: dt.datetime, s: dict[str, Any], position: tuple[float, float]
     ) -> tuple[float, float]:
         """Speed (m/s) and course (degrees) of the epoch (the module docstring's order)."""
-        motion = self._note_motion(when, s)
+        motion = self._note_motion(when, s) or self._derived(when, position)
         if motion is not None:
             return motion
         if self._motion is not None:
             at, speed, course = self._motion
             if 0.0 <= (when - at).total_seconds() <= _MOTION_MAX_AGE:
                 return speed, course
-        return self._derived(when, position)
+        return 0.0, 0.0
 
     def _note_motion(self, when: dt.datetime, s: dict[str, Any]) -> tuple[float, float] | None:
         """The speed (m/s) and course of an epoch's valid RMC, else its VTG, noted as the
@@ -207,20 +214,25 @@ class NmeaReader:
         self._motion = (when, *motion)
         return motion
 
-    def _derived(self, when: dt.datetime, position: tuple[float, float]) -> tuple[float, float]:
-        """Speed and course from the position change since the last fix (or 0, 0).
+    def _derived(
+        self, when: dt.datetime, position: tuple[float, float]
+    ) -> tuple[float, float] | None:
+        """Speed and course from the position change since the last fix; None without a
+        fix 0-5 s before. A fix that did not move keeps the last course.
 
         dx = R * dlon * cos(lat), dy = R * dlat (radians); v = hypot(dx, dy) / dt;
         course = atan2(dx, dy) from north, clockwise.
         """
         if self._last_time is None or self._last_position is None:
-            return 0.0, 0.0
+            return None
         gap = (when - self._last_time).total_seconds()
         if not 0.0 < gap <= _DERIVE_MAX_GAP:
-            return 0.0, 0.0
+            return None
         lat0, lon0 = self._last_position
         dy = math.radians(position[0] - lat0) * _EARTH_RADIUS
         dx = math.radians(position[1] - lon0) * _EARTH_RADIUS * math.cos(math.radians(lat0))
+        if dx == 0.0 and dy == 0.0:
+            return 0.0, self._last_course
         return math.hypot(dx, dy) / gap, math.degrees(math.atan2(dx, dy)) % 360.0
 
 

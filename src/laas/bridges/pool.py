@@ -12,13 +12,16 @@ whose region holds it (`ldm.RoutedSession`), so a device that drives across a bo
 handed over to the next worker.
 
 A device's fixes go on in the order they came, each once. A fix not newer than the
-device's last one (a QoS 1 message the broker delivered twice, an OwnTracks phone's
-second fix within one second of ``tst``, a receiver that repeats an epoch) is dropped
-here, logged at debug level and counted (`PoolStats.stale`): the service would refuse
-it as stale. The fixes that come while the session opens wait in the device's queue
-and are sent, in order, by the thread that opened it, before any later fix; a fix
-that comes once it is open is sent at once by the bridge's thread. One lock per device
-keeps the two from overtaking each other (`_Device.lock`).
+newest one the service accepted from the device, or dated as one still on its way (a
+QoS 1 message the broker delivered twice, an OwnTracks phone's second fix within one
+second of ``tst``, a receiver that repeats an epoch), is dropped here, logged at debug
+level and counted (`PoolStats.stale`): the service would refuse it as stale. Only what
+the service accepted moves a device's newest time on: a fix the service refuses (one
+dated minutes ahead by a phone's wrong clock, say) is logged with the service's reason
+and locks none of the device's later fixes out. The fixes that come while the session
+opens wait in the device's queue and are sent, in order, by the thread that opened it,
+before any later fix; a fix that comes once it is open is sent at once by the bridge's
+thread. One lock per device keeps the two from overtaking each other (`_Device.lock`).
 
 Threads: `submit`, `malformed` and `expire` may be called from any one thread (the
 bridge's). Sessions are opened on a small thread pool, so a device whose session is
@@ -183,7 +186,8 @@ class _Device:
     participant: Participant | None = None
     last: tuple[CorrectedPosition, GpsMeasurement] | None = None  # its last answer, and fix
     last_fix: GpsMeasurement | None = None  # its last fix sent on (for its motion)
-    newest: int | None = None  # the timestamp of its newest fix taken, ms
+    accepted: int | None = None  # the timestamp of its newest fix the service answered, ms
+    pending: set[int] = field(default_factory=set)  # timestamps of its fixes on their way
     waiting: list[tuple[GpsMeasurement, OnAnswer]] = field(default_factory=list)
     ready: bool = False  # the session's outcome is known and `waiting` was sent on
     lock: threading.Lock = field(default_factory=threading.Lock)  # orders its sends
@@ -244,15 +248,16 @@ class DevicePool:
                 device.session.add_done_callback(lambda _f: self._flush(device))
                 self._executor.submit(self._open, device)
             device.last_seen = now
-            if device.newest is not None and fix.timestamp <= device.newest:
+            if fix.timestamp in device.pending or (
+                device.accepted is not None and fix.timestamp <= device.accepted
+            ):
                 self.stats.stale += 1
                 log.debug(
-                    "device %s: a fix not newer than its last one (%d ms behind), dropped",
+                    "device %s: a fix not newer than its last accepted or pending one, dropped",
                     name,
-                    device.newest - fix.timestamp,
                 )
                 return
-            device.newest = fix.timestamp
+            device.pending.add(fix.timestamp)
             self.stats.fixes += 1
         with device.lock:
             if not device.ready:
@@ -376,6 +381,7 @@ class DevicePool:
     ) -> None:
         error = CancelledError() if opened.cancelled() else opened.exception()
         if error is not None:
+            self._settle(device, fix, accepted=False)
             self.stats.lost += 1
             self.limiter.warn(
                 f"{device.name}|open",
@@ -394,6 +400,7 @@ class DevicePool:
         try:  # to the worker whose region holds the fix (a hand-over opens a session)
             reply = session.submit(payload, where)
         except ServiceNotFound:  # its message holds the position: not logged
+            self._settle(device, fix, accepted=False)
             self.stats.lost += 1
             self.limiter.warn(
                 f"{device.name}|route",
@@ -403,6 +410,7 @@ class DevicePool:
             )
             return
         except Exception as exc:  # the hand-over's new session failed
+            self._settle(device, fix, accepted=False)
             self.stats.lost += 1
             self.limiter.warn(
                 f"{device.name}|route", "device %s: a fix was not sent: %s", device.name, exc
@@ -414,6 +422,13 @@ class DevicePool:
         self, device: _Device, fix: GpsMeasurement, reply: Future[dict[str, Any]], on: OnAnswer
     ) -> None:
         error = reply.exception()
+        answer = None
+        if error is None:
+            with contextlib.suppress(ValidationError):
+                answer = read_reply(reply.result())
+        # Only a fix the service answered moves the device's newest time on; a silent
+        # session's dead-reckoned answer and a refusal do not.
+        self._settle(device, fix, accepted=isinstance(answer, CorrectedPosition))
         if isinstance(error, SessionSilent) and device.last is not None:
             # The session keeps quiet after a change of pseudonym: answer as the device would.
             self.stats.answered += 1
@@ -437,9 +452,7 @@ class DevicePool:
                 f"{device.name}|lost", "device %s: a fix got no answer: %s", device.name, error
             )
             return
-        try:
-            answer = read_reply(reply.result())
-        except ValidationError:
+        if answer is None:
             self.stats.lost += 1
             self.limiter.warn(
                 f"{device.name}|reply", "device %s: the service's reply is not one", device.name
@@ -458,6 +471,13 @@ class DevicePool:
             self.stats.answered += 1
             device.last = (answer, fix)
         self._pass_on(device, answer, on)
+
+    def _settle(self, device: _Device, fix: GpsMeasurement, *, accepted: bool) -> None:
+        """`fix` has its outcome: no longer on its way; if accepted, the device's newest."""
+        with self._lock:
+            device.pending.discard(fix.timestamp)
+            if accepted and (device.accepted is None or fix.timestamp > device.accepted):
+                device.accepted = fix.timestamp
 
     def _pass_on(
         self, device: _Device, answer: CorrectedPosition | ErrorReply, on: OnAnswer

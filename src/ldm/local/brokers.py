@@ -20,7 +20,7 @@ import time
 import weakref
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Literal, Protocol, Self
+from typing import Any, Literal, Protocol, Self
 
 from ldm.errors import ConnectError
 from ldm.local.embedded import BrokerProcess, EmbeddedBroker
@@ -108,7 +108,8 @@ class MosquittoBroker:
     """A Mosquitto process on 127.0.0.1 with a generated config (anonymous by default).
 
     ``acl`` is the text of an ACL file (see `mosquitto_acl`); ``extra_config`` is
-    appended to the config verbatim.
+    appended to the config verbatim. ``run_as``: a user id (and group id) to run mosquitto
+    as, when started by root, e.g. 1883 as in the eclipse-mosquitto image.
     """
 
     def __init__(
@@ -118,6 +119,7 @@ class MosquittoBroker:
         extra_config: str = "",
         allow_anonymous: bool = True,
         acl: str | None = None,
+        run_as: int | None = None,
     ) -> None:
         binary = find_mosquitto()
         if binary is None:
@@ -145,6 +147,7 @@ class MosquittoBroker:
             "log_type warning\n" + extra_config
         )
         self._process: subprocess.Popen[bytes] | None = None
+        self.run_as = run_as
 
     @property
     def url(self) -> str:
@@ -159,10 +162,14 @@ class MosquittoBroker:
         """Start mosquitto and wait until it accepts connections."""
         if self._process is not None:
             return self
+        ids: dict[str, Any] = {}
+        if self.run_as is not None:
+            ids = {"user": self.run_as, "group": self.run_as, "extra_groups": []}
         self._process = subprocess.Popen(
             [self.binary, "-c", str(self.config_file)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
+            **ids,
         )
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:

@@ -11,6 +11,7 @@ as UTF-8. `verify` also accepts the older lines Mosquitto still reads::
     USER:$6$base64(SALT)$base64(SHA512(PASSWORD + SALT))
 
     set_passwords("passwd", {"car-17": "s3cret"})   # create or extend, atomically
+    set_passwords("passwd", {"car-18": "pw"}, replace=False)   # never change an account
     verify(Path("passwd").read_text().splitlines()[0], "s3cret")
 """
 
@@ -134,16 +135,23 @@ def verify(line: str, password: str) -> bool:
 
 
 def set_passwords(
-    path: str | os.PathLike[str], passwords: Mapping[str, str], *, mode: int = 0o640
-) -> None:
+    path: str | os.PathLike[str],
+    passwords: Mapping[str, str],
+    *,
+    mode: int = 0o640,
+    replace: bool = True,
+) -> list[str]:
     """Create or extend a password file: one line per user in `passwords`.
 
-    A user's existing line is replaced in place (further lines of the same user are
-    dropped); every other line is kept as it was. The new file is written next to the old
-    one and renamed over it, so readers see the old or the new file, never a part; it gets
-    `mode` and, where permitted, the old file's owner.
+    With `replace`, a user's existing line is replaced in place (further lines of the same
+    user are dropped); without it, a user already in the file keeps its password and is
+    returned among the users kept. Every other line is kept as it was. The new file is
+    written next to the old one and renamed over it, so readers see the old or the new
+    file, never a part; it gets `mode` and, where permitted, the old file's owner.
+    Returns the users of `passwords` whose existing lines were kept (none with `replace`).
     """
-    lines = {check_user(user): password_line(user, pw) for user, pw in passwords.items()}
+    for user in passwords:
+        check_user(user)
     target = Path(os.path.realpath(path))
     try:
         old = target.read_text(encoding="utf-8", errors="surrogateescape").splitlines()
@@ -151,14 +159,17 @@ def set_passwords(
         owner: tuple[int, int] | None = (status.st_uid, status.st_gid)
     except FileNotFoundError:
         old, owner = [], None
+    present = {line.split(":", 1)[0].strip() for line in old if ":" in line}
+    kept = [] if replace else [user for user in passwords if user in present]
+    lines = {user: password_line(user, pw) for user, pw in passwords.items() if user not in kept}
     out: list[str] = []
     done: set[str] = set()
     for existing in old:
-        user = existing.split(":", 1)[0].strip() if ":" in existing else None
-        if user in lines:
-            if user not in done:
-                out.append(lines[user])
-                done.add(user)
+        name = existing.split(":", 1)[0].strip() if ":" in existing else None
+        if name is not None and name in lines:
+            if name not in done:
+                out.append(lines[name])
+                done.add(name)
         else:
             out.append(existing)
     out += [line for user, line in lines.items() if user not in done]
@@ -179,6 +190,7 @@ def set_passwords(
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return kept
 
 
 def _b64(data: bytes) -> str:

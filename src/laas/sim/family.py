@@ -80,6 +80,10 @@ GNSS errors:
   multipath   U(0, 1/30) jumps per s per receiver (urban U(0, 1/20), arterial U(0, 1/60)),
               U(2, 6) m max size, U(2, 6) s mean length
   dropouts    share U(0, 0.05) lost one by one; gaps at U(0, 1/60) per s of U(2, 8) s mean
+  course      with p 1/2 a receiver reports the road's direction as its course (a
+              smoothed or map-matched course, a phone's fused bearing: a lane change does not
+              show in it), else that of its true motion; drawn from a stream of its own,
+              seeded by (crc32(family), seed, 1)
   rates       per receiver, Hz: cars 1, 2, 5, 10 with p 0.5, 0.15, 0.15, 0.2; cyclists and
               pedestrians (phones) with p 0.75, 0.1, 0.1, 0.05; a random phase in the period
   accuracy    half of the receivers report one (GpsMeasurement.accuracy, the horizontal
@@ -104,6 +108,7 @@ family draws, from one generator seeded by (crc32(name), seed):
               speeds and times from `laas.sim.roam.roam_scenario` (seeded by the next draw):
               users roam the map, following successors through junctions
   time        duration U(60, 120) s
+  course      as above, from the stream seeded by (crc32(name), seed, 1)
 The map is the map: nothing about it is drawn.
 """
 
@@ -338,6 +343,7 @@ def _map_case(name: str, seed: int) -> FamilyCase:
         name=f"{name}-{seed}",
         errors=errors,
     )
+    scenario = scenario.model_copy(update={"users": _courses(scenario.users, name, seed)})
     return FamilyCase(name, seed, None, {}, hdmap, scenario)
 
 
@@ -366,7 +372,7 @@ def build_case(family: str, seed: int) -> FamilyCase:
     duration = float(round(rng.uniform(60.0, 120.0)))
     errors = _draw_errors(spec, rng)
     length = sum(hdmap.segments[s].length for s in route)
-    users = _draw_users(spec, rng, road, length, duration)
+    users = _courses(_draw_users(spec, rng, road, length, duration), spec.name, seed)
     scenario = Scenario(
         name=name,
         map=f"family:{name}",
@@ -377,6 +383,13 @@ def build_case(family: str, seed: int) -> FamilyCase:
         errors=errors,
     )
     return FamilyCase(spec.name, seed, road, geojson, hdmap, scenario)
+
+
+def _courses(users: tuple[UserPlan, ...], name: str, seed: int) -> tuple[UserPlan, ...]:
+    """Each receiver's course from the road with p 1/2 (`UserPlan.course_from_road`),
+    drawn from a stream of its own so that every other draw of the case stays as it was."""
+    rng = np.random.default_rng([zlib.crc32(name.encode()), seed, 1])
+    return tuple(u.model_copy(update={"course_from_road": bool(rng.random() < 0.5)}) for u in users)
 
 
 # --- the road ---------------------------------------------------------------------------

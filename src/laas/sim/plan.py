@@ -242,6 +242,14 @@ class UserPlan(BaseModel):
             "defines it (None: it reports none)"
         ),
     )
+    course_from_road: bool = Field(
+        default=False,
+        description=(
+            "the receiver reports the road's direction as its course (a smoothed or "
+            "map-matched course, a phone's fused bearing), so a lane change does not show "
+            "in it; else the course of its true motion"
+        ),
+    )
     lie: Lie | None = Field(
         default=None, description="this participant reports a false path (None: it does not)"
     )

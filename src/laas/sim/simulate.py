@@ -156,6 +156,8 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
             # what the receiver reports: the true path, or a liar's false one with the
             # false path's own heading and speed
             rep_e, rep_n, rep_heading, rep_speed = e, n, heading, speed
+            if plan.course_from_road:
+                rep_heading = facing
             lying = plan.lie is not None and plan.lie.factor(local) > 0.0
             if plan.lie is not None and lying:
                 rep_e, rep_n = false_position(route, plan, plan.lie, local, table)

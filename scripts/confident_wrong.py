@@ -9,9 +9,9 @@ calibrated) and counts the answers that said p >= 0.9 and were wrong (`judge`): 
 family, the runs that hold most of them, and by the time since the user's last true lane
 change. The second prints one user's answers between two times (s from the run's first
 fix): true and answered lane, the probability, and the receiver's own error across the
-road (the fix less the true common error and the true position). The figures of
-docs/evaluation.md ("Stop 34 looked at ...") and of the README's last paragraph on issue 22
-come from it. Development seeds only: it is a tool for model work, not a score.
+road (the fix less the true common error and the true position). The figures
+docs/evaluation.md gives of them come from it. Development seeds only: it is a tool for
+model work, not a score.
 """
 
 from __future__ import annotations

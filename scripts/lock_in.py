@@ -8,8 +8,9 @@ its fixes' offset from its true lane centre over the first `--first` seconds and
 (where the users agree on the true lanes and where one lane over), then default mode's answers,
 uncalibrated, with evidence that never fades and with the 30 s memory: how many are
 right (the answered lane holds the true position), how many said >= 0.9 and were
-wrong, and the most a wrong answer said in the first seconds. The README's and
-docs/evaluation.md's figures of dev `edge` seed 20 come from it.
+wrong, and the most a wrong answer said in the first seconds. docs/evaluation.md's
+figures of dev `edge` seed 20 ("Tried on dev and left out", and "Roads nobody chose:
+scenario families") come from it.
 Development seeds only: it is a tool for model work, not a score.
 """
 

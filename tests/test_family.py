@@ -343,7 +343,8 @@ def test_the_builtin_scenarios_use_none_of_the_new_features() -> None:
 def _clean(case: FamilyCase) -> tuple[HdMap, Trace]:
     """The case's users with ideal receivers under a large, drifting common error."""
     users = tuple(
-        p.model_copy(update={"bias": (0.0, 0.0), "noise_scale": 1.0}) for p in case.scenario.users
+        p.model_copy(update={"bias": (0.0, 0.0), "noise_scale": 1.0, "course_from_road": False})
+        for p in case.scenario.users
     )
     scenario = case.scenario.model_copy(update={"users": users})
     errors = ErrorModel(

@@ -595,11 +595,18 @@ class CommonError:
             self._own = np.zeros_like(self._log)
 
     def _recorded(self, term: np.ndarray) -> None:
-        """Add an update's evidence on the window to the record (if one is kept)."""
+        """Add an update's evidence on the window to the record (if one is kept). The
+        cells outside the window, which the posterior had ruled out, take the window's
+        worst term: had they been worked out, they would have fared no better. Without
+        that a cell the window left out kept a record of no evidence against it, and a
+        cell the window takes back later, when the evidence fades, read in the record as
+        the best of all (a neighbour's posterior went there after a hand-over)."""
         if self._own is None:
             return
         i0, i1, j0, j1 = self._win
-        self._own[i0:i1, j0:j1] += term
+        worst = float(term.min())
+        self._own += worst
+        self._own[i0:i1, j0:j1] += term - worst
         self._own_any = True
 
     def user_evidence(self, user: str) -> tuple[tuple[int, int, int, int], np.ndarray] | None:

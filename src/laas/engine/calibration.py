@@ -11,18 +11,19 @@ A monotone map g, fitted once on the development suite, takes the one to the oth
     P_reported = g(P(l*)),   g non-decreasing, piecewise linear between `KNOTS`
 
 g is the isotonic regression of "the answer's (segment, lane) is the true one" on P over
-every answer of `laas evaluate --suite dev` (both sigma_pos, in batches as the live worker
-takes them; P is the lane's posterior times P(on the named element), `Engine._on_element`),
-by the pool-adjacent-violators algorithm (`scipy.optimize.isotonic_regression`), taken as the lower quartile
-of such fits to the dev runs resampled with replacement, and thinned to knots that move
-g by at most 0.005 (`scripts/fit_calibration.py`, which prints this table: all 40 dev
-seeds of every family at both sigma_pos, 320 runs, 354,558 answers; ECE 0.027 -> 0.005
-at sigma_pos 1 and 0.033 -> 0.005 at 2.5 there). The answers of one run share its road,
-users and errors, so the runs are the samples; where they disagree the lower quartile
-says a little less, the side integrity asks for (the script's docstring gives the check
-on halves of dev). Being monotone, g never changes which lane is answered, only what is
-said of it. The held-out suite is never used to fit it; `laas evaluate --suite heldout`
-shows how it holds there.
+every answer of `laas evaluate --suite dev` (both sigma_pos, in batches as the live
+worker takes them; P is the lane's posterior times P(on the named element),
+`Engine._on_element`), by the pool-adjacent-violators algorithm
+(`scipy.optimize.isotonic_regression`), taken as the lower quartile of such fits to the
+dev runs resampled with replacement, and thinned to knots that move g by at most 0.005
+(`scripts/fit_calibration.py`, which prints this table: all 40 dev seeds of every family
+at both sigma_pos, 320 runs, 354,558 answers; ECE 0.027 -> 0.005 at sigma_pos 1 and
+0.033 -> 0.005 at 2.5 there). The answers of one run share its road, users and errors,
+so the runs are the samples; where they disagree the lower quartile says a little less,
+the side integrity asks for (the script's docstring gives the check on halves of dev).
+Being monotone, g never changes which lane is answered, only what is said of it. The
+held-out suite is never used to fit it; `laas evaluate --suite heldout` shows how it
+holds there.
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ import pytest
 
 from laas.map.hdmap import HdMap
 from laas.models import ErrorReply, read_reply
-from laas.service import LaasService, start_worker
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
+from laas.worker.service import LaasService, start_worker
 from ldm import (
     ConnectError,
     Core,

@@ -11,7 +11,7 @@ import pytest
 
 import laas
 from laas import ConfigError, EngineConfig
-from laas.service import WorkerConfig
+from laas.worker.service import WorkerConfig
 
 SRC = Path(__file__).resolve().parent.parent / "src"
 
@@ -23,7 +23,6 @@ FORBIDDEN_IN_PURE = (
     "amqtt",
     "matplotlib",
     "laas.cli",
-    "laas.service",
     "laas.worker",
     "laas.run",
 )

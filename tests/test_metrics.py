@@ -16,8 +16,8 @@ import yaml  # type: ignore[import-untyped]
 
 from laas.engine.engine import EngineStats
 from laas.map.hdmap import HdMap
-from laas.metrics import ENGINE_COUNTERS, FIX_OUTCOMES
-from laas.service import WorkerStats
+from laas.worker.metrics import ENGINE_COUNTERS, FIX_OUTCOMES
+from laas.worker.service import WorkerStats
 from ldm import BrokerSettings, CoreStats, Participant, ProviderStats
 from ldm.local.brokers import free_port
 from ldm.local.embedded import EmbeddedBroker

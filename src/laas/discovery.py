@@ -2,7 +2,7 @@
 
 A provider offers `name` when it is the service of that name (one worker for the whole
 map) or a member of the family of that name (a regional worker, ``laas-1of2`` of the
-family ``laas``: `laas.regions`). A client waits until the cluster's retained service
+family ``laas``: `laas.worker.regions`). A client waits until the cluster's retained service
 list shows one, then routes each fix to the provider whose coverage holds it
 (`ldm.RoutedSession`).
 """

@@ -115,7 +115,7 @@ class BenchConfig:
     connect_rate: float = 200.0  # new connections per second, over all processes
     spread: bool = False  # fixes spread over the second, not all on the whole second
     privacy: bool = True  # the two Hamburg runs after the load (the cost of privacy)
-    workers: int = 1  # worker processes, each serving a region of the map (laas.regions)
+    workers: int = 1  # worker processes, each serving a region of the map (laas.worker.regions)
 
     def __post_init__(self) -> None:
         if self.participants < 1:

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from laas.run.participants import Login, wait_for_service
-from laas.service import SERVICE_NAME
+from laas.worker.service import SERVICE_NAME
 from ldm import Participant, RoutedSession, Session
 from ldm.errors import ConnectError
 from ldm.transport import ClientLoop

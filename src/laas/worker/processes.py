@@ -1,6 +1,6 @@
 """`laas worker --processes N`: one worker node using all its cores.
 
-The map is cut into N regions (`laas.regions`) and each is served by a `laas worker
+The map is cut into N regions (`laas.worker.regions`) and each is served by a `laas worker
 --region K/N` child process, so each process owns the common-error areas and the road
 elements of its strip, and participants route their fixes to it by position
 (`ldm.client.routing.RoutedSession`). All children serve under one identity (participants pin

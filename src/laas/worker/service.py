@@ -93,7 +93,7 @@ log = logging.getLogger(__name__)
 
 def service_spec(region: Region | None = None) -> ServiceSpec:
     """What the worker announces: name, version and the two wire schemas; a regional
-    worker, its own name in the `laas` family and its coverage (`laas.regions`)."""
+    worker, its own name in the `laas` family and its coverage (`laas.worker.regions`)."""
     return ServiceSpec(
         name=SERVICE_NAME if region is None else region.name,
         version=version("laas"),
@@ -240,7 +240,7 @@ class LaasService:
         knows: pseudonyms, fixes and answers."""
         self.timer: Callable[[str, float], None] | None = None
         """Told ("engine", seconds) for each batch the engine answers; None: not timed
-        (`laas.metrics.watch_worker` sets it)."""
+        (`laas.worker.metrics.watch_worker` sets it)."""
 
     @property
     def sessions(self) -> int:

@@ -31,13 +31,14 @@ What the worker refuses, each with an error reply ``{"error": {"kind", "message"
 
 A regional worker (`laas.worker.regions`) hands its users over at its border: while a
 fix lies past the border (outside its ``strip``), the answer carries the user's state
-(`Engine.export_user`) sealed with the family's key (`ldm.security.crypto.family_cipher`)
-as ``handover``; a fix that brings one (the first to this worker, `ldm.RoutedSession`)
-has it opened and taken (`Engine.import_user`) before the engine answers it. One that
-cannot be opened or read is counted (``handover_refused``) and the fix answered as a new
-track's. Every ``share_every`` seconds the worker sends its users' evidence about the
-common error of its areas to the family (`Provider.note`), and takes what the others
-send for the areas its coverage holds (`Engine.import_areas`).
+(`Engine.export_user`) sealed with the key the regional workers share
+(`ldm.Provider.seal_shared`) as ``handover``; a fix that brings one (the first to this
+worker, `ldm.RoutedSession`) has it opened (`ldm.Provider.open_shared`) and taken
+(`Engine.import_user`) before the engine answers it. One that cannot be opened or read
+is counted (``handover_refused``) and the fix answered as a new track's. Every
+``share_every`` seconds the worker sends its users' evidence about the common error of
+its areas to the family (`Provider.note`), and takes what the others send for the areas
+its coverage holds (`Engine.import_areas`).
 
 A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
 seconds of the worker's wall clock after its last accepted fix, whatever its timestamps
@@ -54,7 +55,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import version
-from typing import Any
+from typing import Any, Protocol
 
 from pydantic import Field, ValidationError
 
@@ -72,7 +73,6 @@ from laas.models import HANDOVER_MAX, CorrectedPosition, ErrorReply, GpsMeasurem
 from laas.worker.regions import Region
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 from ldm.errors import CryptoError
-from ldm.security.crypto import SessionCipher, family_cipher
 from ldm.security.identity import SigningKey
 
 __all__ = [
@@ -89,6 +89,14 @@ SERVICE_NAME = "laas"
 _HANDOVER_AAD = "laas-handover/1"
 
 log = logging.getLogger(__name__)
+
+
+class SharedKey(Protocol):
+    """Seals and opens what only the regional workers may read (`ldm.Provider`)."""
+
+    def seal_shared(self, plaintext: bytes, context: str) -> str: ...
+
+    def open_shared(self, sealed: str, context: str) -> bytes: ...
 
 
 def service_spec(region: Region | None = None) -> ServiceSpec:
@@ -203,15 +211,16 @@ class LaasService:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         region: Region | None = None,
-        family: SessionCipher | None = None,
+        shared: SharedKey | None = None,
     ) -> None:
         self.engine = Engine(hdmap, config)
         self.region = region
-        self._family = family if region is not None else None
-        """Seals and opens hand-overs; None: no hand-over (one worker for the map)."""
+        self.shared = shared if region is not None else None
+        """Seals and opens hand-overs (the worker's `ldm.Provider`, which `start_worker`
+        sets); None: no hand-over (one worker for the map)."""
         self.notes: Callable[[bytes], None] | None = None
         """Sends the area evidence to the family (`Provider.note`); None: not shared."""
-        if self._family is not None:
+        if region is not None:
             self.engine.record_areas()
         self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
@@ -284,7 +293,7 @@ class LaasService:
                 self.timer("engine", spent)
             for (i, _, m), answer in zip(work, answers, strict=True):
                 replies[i] = self._reply(m, answer)
-            if self._family is not None:
+            if self.shared is not None:
                 self._hand_out(work, answers, replies)
             if self.observer is not None:
                 seen = [
@@ -309,9 +318,9 @@ class LaasService:
             if m.handover is None:
                 continue
             try:
-                if self._family is None:
+                if self.shared is None:
                     raise CryptoError("this worker serves no region: it takes no hand-over")
-                state = user_from_bytes(self._family.open(m.handover, _HANDOVER_AAD))
+                state = user_from_bytes(self.shared.open_shared(m.handover, _HANDOVER_AAD))
                 if self.engine.import_user(pseudonym, state):
                     self.stats.handed_in += 1
             except (CryptoError, HandoverError) as exc:
@@ -333,7 +342,7 @@ class LaasService:
     ) -> None:
         """Add the user's sealed state to each answer to a fix past the border."""
         assert self.region is not None and self.region.strip is not None
-        assert self._family is not None
+        assert self.shared is not None
         x0, y0, x1, y1 = self.region.strip
         xy = self._map.projection.to_utm_array(
             [m.longitude for _, _, m in work], [m.latitude for _, _, m in work]
@@ -343,7 +352,7 @@ class LaasService:
                 continue
             state = self.engine.export_user(pseudonym)
             if state is not None:
-                token = self._family.seal(user_to_bytes(state), _HANDOVER_AAD)
+                token = self.shared.seal_shared(user_to_bytes(state), _HANDOVER_AAD)
                 if len(token) > HANDOVER_MAX:  # a wide lane table: the user starts afresh
                     self.stats.handover_skipped += 1
                     continue
@@ -495,8 +504,7 @@ def start_worker(
     if identity is None and region is not None:
         path = provider_settings.get("identity_file")
         identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
-    family = None if region is None else family_cipher(identity, SERVICE_NAME)
-    service = LaasService(hdmap, config, worker, region=region, family=family)
+    service = LaasService(hdmap, config, worker, region=region)
     provider = Provider.create(
         cluster,
         service_spec(region),
@@ -507,6 +515,7 @@ def start_worker(
         **provider_settings,
     )
     if region is not None:
+        service.shared = provider
         service.notes = provider.note
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)

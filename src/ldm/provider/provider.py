@@ -292,6 +292,21 @@ class Provider(Worker[Event]):
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
         self._send(route, pseudonym, correlation_id, payload, now=True)
 
+    def seal_shared(self, plaintext: bytes, context: str) -> str:
+        """`plaintext` sealed for the family's providers alone (the family's key, as a
+        note), with `context` bound as associated data: what one passes another through
+        someone it does not trust (a regional worker's hand-over, through the user)."""
+        if self._family_cipher is None:
+            raise SessionError(f"{self.name} is in no family: it shares no key")
+        return self._family_cipher.seal(plaintext, context)
+
+    def open_shared(self, sealed: str, context: str) -> bytes:
+        """What a provider of the family sealed with `seal_shared` under `context`;
+        CryptoError if it was not, or was changed."""
+        if self._family_cipher is None:
+            raise SessionError(f"{self.name} is in no family: it shares no key")
+        return self._family_cipher.open(sealed, context)
+
     def note(self, payload: bytes) -> None:
         """Send `payload` to the family's other providers (the module docstring)."""
         if self.family is None or self._family_cipher is None:

@@ -75,8 +75,8 @@ from laas.sim.scenario import (
 from laas.sim.score import score
 from ldm import BrokerSettings, RoutedSession, Session
 from ldm.local.brokers import find_mosquitto
-from ldm.ops.hops import Hops
 from ldm.transport import Event, Message, Transport
+from ldm.transport.hops import Hops
 
 __all__ = [
     "STAGES",
@@ -245,7 +245,7 @@ STAGES = (
     ("worker: open, engine, checks", "taken", "answered"),
     ("worker -> user core (reply)", "answered", "delivered"),
 )
-"""The stages `laas bench` times: (name, from point, to point) of `ldm.ops.hops`."""
+"""The stages `laas bench` times: (name, from point, to point) of `ldm.transport.hops`."""
 
 
 def stage_latencies(hops: Hops) -> dict[str, Latency]:

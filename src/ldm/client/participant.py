@@ -39,7 +39,7 @@ from ldm.errors import (
     TrustError,
 )
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
-from ldm.security.identity import canonical, verify
+from ldm.security.identity import verify
 from ldm.security.trust import Trust
 from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
 from ldm.transport.worker import Worker
@@ -53,6 +53,7 @@ from ldm.wire.messages import (
     SessionGrant,
     SessionNotice,
     SessionRequest,
+    canonical,
 )
 from ldm.wire.rotation import RotationPolicy
 

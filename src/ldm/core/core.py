@@ -50,9 +50,9 @@ from ldm.core.routing import Router
 from ldm.core.services import Catalog
 from ldm.core.sessions import Sessions
 from ldm.core.stats import CoreStats
-from ldm.ops.hops import Hops
 from ldm.security.identity import SigningKey
 from ldm.security.trust import Trust
+from ldm.transport.hops import Hops
 from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
@@ -216,7 +216,7 @@ class Core(Worker[Event]):
 
     @property
     def hops(self) -> Hops | None:
-        """Set to note when each input passes this core (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this core (`ldm.transport.hops`; `laas bench`)."""
         return self.router.hops
 
     @hops.setter

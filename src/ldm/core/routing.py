@@ -20,7 +20,7 @@ from ldm.config import CoreConfig
 from ldm.core.sessions import Sessions
 from ldm.core.state import Route
 from ldm.core.stats import CoreStats
-from ldm.ops.hops import Hops
+from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Transport
 from ldm.wire import topics
 from ldm.wire.batch import Outbox
@@ -54,7 +54,7 @@ class Router:
         """Other clusters' pseudonyms -> the core their input came from."""
         self._outbox = Outbox()
         self.hops: Hops | None = None
-        """Set to note when each input passes this core (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this core (`ldm.transport.hops`; `laas bench`)."""
 
     @property
     def route_count(self) -> int:

@@ -44,9 +44,9 @@ from pydantic import ValidationError
 
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
-from ldm.ops.hops import Hops
 from ldm.security.crypto import KeyPair, SessionCipher, aad, family_cipher
 from ldm.security.identity import SigningKey, verify
+from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
@@ -198,7 +198,7 @@ class Provider(Worker[Event]):
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self.hops: Hops | None = None
-        """Set to note when each input passes this provider (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this provider (`ldm.transport.hops`; `laas bench`)."""
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each input opened (``open``), each reply sealed
         (``seal``) and each turn of the handler (``step``); None: not timed

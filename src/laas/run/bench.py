@@ -27,7 +27,7 @@ participant, on one clock in one process.
 
 The floor, in the same run on the same user broker: each participant process has one
 plain MQTT client (`ldm.transport.Transport`) that publishes a ping beside every fourth
-fix; the echo process takes it off its queue on a worker thread (the hand-off every LDM
+fix; the echo process takes it off its queue on a dispatch thread (the hand-off every LDM
 component makes) and publishes it back. The LDM overhead is p50(LDM) / p50(bare).
 
 The cost of privacy: the Hamburg scenario (`laas.sim.scenario.hamburg_scenario`) runs
@@ -416,7 +416,7 @@ def _is_ping(topic: str) -> bool:
 
 
 def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
-    """Echo every ping on the user broker back as a pong, via a worker thread."""
+    """Echo every ping on the user broker back as a pong, via a dispatch thread."""
     inbox: queue.SimpleQueue[Event] = queue.SimpleQueue()
     transport = Transport(BrokerSettings.of(url), client_id=f"bench-echo-{tag}", sink=inbox.put)
     transport.subscribe(_PING.format(shard="+"), 0)

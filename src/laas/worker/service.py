@@ -5,7 +5,7 @@ subscription, keeps a Kalman track per pseudonym (a rotated pseudonym simply sta
 new track; the common-error estimate, which is not per user, carries the group over),
 and answers each accepted fix with a `CorrectedPosition`. A fix it cannot use gets an
 error reply that names the field and the problem. The handler runs on the provider's
-one worker thread, so the engine needs no lock; it takes the fixes that waited together
+one dispatch thread, so the engine needs no lock; it takes the fixes that waited together
 as one batch (`handle_many`), and the engine gives each the answer it would have given
 alone.
 
@@ -244,7 +244,7 @@ class LaasService:
         self._next_share = -math.inf  # fix time (s) of the next share of area evidence
         self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
         self.observer: Callable[[Sequence[Observation]], None] | None = None
-        """Shown every batch of answered fixes, on the worker thread (a live map);
+        """Shown every batch of answered fixes, on the dispatch thread (a live map);
         None: nobody watches. It must be quick, and it learns only what the worker
         knows: pseudonyms, fixes and answers."""
         self.timer: Callable[[str, float], None] | None = None
@@ -373,7 +373,7 @@ class LaasService:
                 log.exception("the area evidence was not sent; it is lost to the neighbours")
 
     def take_note(self, sender: str, payload: bytes) -> None:
-        """A sibling's area evidence (`Provider`'s ``on_note``, the worker thread)."""
+        """A sibling's area evidence (`Provider`'s ``on_note``, the dispatch thread)."""
         try:
             self.engine.import_areas(sender, areas_from_bytes(payload), self._reach())
         except HandoverError as exc:

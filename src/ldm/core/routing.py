@@ -7,9 +7,9 @@ to the local participant of its pseudonym (mapped back to its client here, the o
 place that knows it), or back over the backbone.
 
 Envelopes to one destination (a provider, another core) wait in the `Outbox` while the
-core's worker handles what waited, then leave as one batch (`ldm.wire.batch`; `flush`).
+core's dispatch thread handles what waited, then leave as one batch (`ldm.wire.batch`; `flush`).
 A core forwards the bytes it received (decoded and checked, not encoded again); the
-user core drops the participant's tag first. Only the core's worker thread calls it.
+user core drops the participant's tag first. Only the core's dispatch thread calls it.
 """
 
 from __future__ import annotations

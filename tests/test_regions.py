@@ -275,7 +275,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
     from laas.engine import Engine
     from laas.sim.regional import route_fixes
     from ldm import CryptoError, Participant, RoutedSession
-    from ldm.security.crypto import family_cipher
+    from ldm.security.crypto import region_cipher
     from ldm.security.identity import SigningKey
     from ldm.transport.mqtt import Event, Message, Transport
 
@@ -335,7 +335,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
         assert b'"alpha"' not in payload and b'"lanes"' not in payload
         assert not any(t[:64].encode() in payload for t in tokens)
     with pytest.raises(CryptoError):
-        family_cipher(SigningKey.generate(), "laas").open(tokens[-1], "laas-handover/1")
+        region_cipher(SigningKey.generate(), "laas").open(tokens[-1], "laas-handover/1")
     print(
         f"\nhand-over: worker 2's first answer lane {first['lane']}, accuracy "
         f"{first['accuracy']:.2f} m (one worker {reference.accuracy:.2f} m), "

@@ -62,7 +62,7 @@ def test_a_note_reaches_the_family_sealed_once(mqtt_broker: RunningBroker) -> No
         assert _wait(lambda: len(wire) == 1)
         assert b"secret" not in wire[0] and set(json.loads(wire[0])) == {"t", "d"}
         spy.publish(topics.family_note("fam", "fam-1of2"), wire[0], 0)  # a replay
-        stranger.note(b"forged")  # sealed with another identity's family key
+        stranger.note(b"forged")  # sealed with another identity's region key
         assert _wait(lambda: two.stats.dropped_notes == 2), two.stats
         assert got == [("fam-1of2", b"secret evidence")]
         assert one.stats.notes_sent == 1 and two.stats.notes_taken == 1

@@ -37,8 +37,8 @@ worker, `ldm.RoutedSession`) has it opened (`ldm.Provider.open_shared`) and take
 (`Engine.import_user`) before the engine answers it. One that cannot be opened or read
 is counted (``handover_refused``) and the fix answered as a new track's. Every
 ``share_every`` seconds the worker sends its users' evidence about the common error of
-its areas to the family (`Provider.note`), and takes what the others send for the areas
-its coverage holds (`Engine.import_areas`).
+its areas to the other regional workers (`Provider.note`), and takes what the others
+send for the areas its coverage holds (`Engine.import_areas`).
 
 A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
 seconds of the worker's wall clock after its last accepted fix, whatever its timestamps
@@ -101,7 +101,8 @@ class SharedKey(Protocol):
 
 def service_spec(region: Region | None = None) -> ServiceSpec:
     """What the worker announces: name, version and the two wire schemas; a regional
-    worker, its own name in the `laas` family and its coverage (`laas.worker.regions`)."""
+    worker, its own name among the regions of `laas` and its coverage
+    (`laas.worker.regions`)."""
     return ServiceSpec(
         name=SERVICE_NAME if region is None else region.name,
         version=version("laas"),
@@ -219,7 +220,8 @@ class LaasService:
         """Seals and opens hand-overs (the worker's `ldm.Provider`, which `start_worker`
         sets); None: no hand-over (one worker for the map)."""
         self.notes: Callable[[bytes], None] | None = None
-        """Sends the area evidence to the family (`Provider.note`); None: not shared."""
+        """Sends the area evidence to the other regional workers (`Provider.note`); None:
+        not shared."""
         if region is not None:
             self.engine.record_areas()
         self.config = worker or WorkerConfig()
@@ -361,7 +363,7 @@ class LaasService:
 
     def _share(self, t: float) -> None:
         """Every share_every s of the fixes' time (a simulation sped up shares as
-        often as live): this worker's own area evidence to the family."""
+        often as live): this worker's own area evidence to the other regional workers."""
         if self.notes is None or self.region is None or t < self._next_share:
             return
         self._next_share = t + self.config.share_every
@@ -495,7 +497,7 @@ def start_worker(
     **provider_settings: Any,
 ) -> tuple[Provider, LaasService]:
     """Connect to a service-cluster broker, announce `laas` (or, for a region, its
-    worker of the `laas` family) and serve until stopped.
+    regional worker of `laas`) and serve until stopped.
 
     ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``, ``max_age``,
     ``data_qos``, ...).

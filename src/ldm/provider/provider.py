@@ -20,8 +20,8 @@ thread has handled it all, or a single message when there is one.
 Family notes: the providers of one family (regional workers, `ldm.client.routing`), which
 serve under one identity, may pass each other what their neighbours need (a service's
 own business: the LaaS workers share their common-error evidence). `Provider.note`
-publishes on ``ldm/svc/{family}/note/{service}``, sealed with the family's key
-(`ldm.security.crypto.family_cipher`), which no core subscribes to and no broker can
+publishes on ``ldm/svc/{family}/note/{service}``, sealed with the region key
+(`ldm.security.crypto.region_cipher`), which no core subscribes to and no broker can
 read; each other provider of the family given ``on_note`` gets it on its dispatch thread,
 as (sender, plaintext), once, in order: a note no newer than the sender's last, older
 than ``max_age``, or that fails authentication is dropped and counted
@@ -44,7 +44,7 @@ from pydantic import ValidationError
 
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
-from ldm.security.crypto import KeyPair, SessionCipher, aad, family_cipher
+from ldm.security.crypto import KeyPair, SessionCipher, aad, region_cipher
 from ldm.security.identity import SigningKey, verify
 from ldm.transport.dispatch import Dispatcher
 from ldm.transport.hops import Hops
@@ -229,7 +229,7 @@ class Provider(Dispatcher[Event]):
         if self.cluster is None:
             self.transport.subscribe(topics.SERVICES, 1)
         self.family = spec.family
-        self._family_cipher = None if spec.family is None else family_cipher(identity, spec.family)
+        self._region_key = None if spec.family is None else region_cipher(identity, spec.family)
         self._on_note = on_note
         self._note_times: dict[str, float] = {}  # sender -> its last note's time
         if spec.family is not None and on_note is not None:
@@ -293,26 +293,26 @@ class Provider(Dispatcher[Event]):
         self._send(route, pseudonym, correlation_id, payload, now=True)
 
     def seal_shared(self, plaintext: bytes, context: str) -> str:
-        """`plaintext` sealed for the family's providers alone (the family's key, as a
+        """`plaintext` sealed for the family's providers alone (the region key, as a
         note), with `context` bound as associated data: what one passes another through
         someone it does not trust (a regional worker's hand-over, through the user)."""
-        if self._family_cipher is None:
-            raise SessionError(f"{self.name} is in no family: it shares no key")
-        return self._family_cipher.seal(plaintext, context)
+        if self._region_key is None:
+            raise SessionError(f"{self.name} is in no family: it holds no region key")
+        return self._region_key.seal(plaintext, context)
 
     def open_shared(self, sealed: str, context: str) -> bytes:
         """What a provider of the family sealed with `seal_shared` under `context`;
         CryptoError if it was not, or was changed."""
-        if self._family_cipher is None:
-            raise SessionError(f"{self.name} is in no family: it shares no key")
-        return self._family_cipher.open(sealed, context)
+        if self._region_key is None:
+            raise SessionError(f"{self.name} is in no family: it holds no region key")
+        return self._region_key.open(sealed, context)
 
     def note(self, payload: bytes) -> None:
         """Send `payload` to the family's other providers (the module docstring)."""
-        if self.family is None or self._family_cipher is None:
+        if self.family is None or self._region_key is None:
             raise SessionError(f"{self.name} is in no family: it has nobody to send notes to")
         t = time.time()
-        sealed = self._family_cipher.seal(payload, _note_aad(self.name, t))
+        sealed = self._region_key.seal(payload, _note_aad(self.name, t))
         body = json.dumps({"t": t, "d": sealed}, separators=(",", ":")).encode()
         self.transport.publish(topics.family_note(self.family, self.name), body, 0)
         with self._count:
@@ -321,7 +321,7 @@ class Provider(Dispatcher[Event]):
     def _note(self, msg: Message) -> None:
         """A family note (dispatch thread): opened, checked, given to ``on_note``."""
         sender = topics.parse(msg.topic).service
-        if sender == self.name or self._on_note is None or self._family_cipher is None:
+        if sender == self.name or self._on_note is None or self._region_key is None:
             return
         try:
             body = json.loads(msg.payload)
@@ -330,7 +330,7 @@ class Provider(Dispatcher[Event]):
                 sender, -1.0
             ):
                 raise CryptoError("a stale or replayed note")
-            plaintext = self._family_cipher.open(str(body["d"]), _note_aad(sender, t))
+            plaintext = self._region_key.open(str(body["d"]), _note_aad(sender, t))
         except (CryptoError, ValueError, KeyError, TypeError, RecursionError):
             self.stats.dropped_notes += 1
             return

@@ -114,8 +114,8 @@ class SigningKey:
 
     def derive(self, info: bytes) -> bytes:
         """A 32-byte secret for `info` that only holders of this key can compute:
-        HKDF-SHA256(private key, info). The providers of one family, which serve under
-        one identity, share it (`ldm.security.crypto.family_cipher`)."""
+        HKDF-SHA256(private key, info). The providers of one service's regions, which
+        serve under one identity, share it (`ldm.security.crypto.region_cipher`)."""
         raw = self._private.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
         return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(raw)
 

@@ -31,10 +31,10 @@ from laas import (
     ServiceUnavailable,
     UntrustedService,
 )
-from laas.regions import split
 from laas.run.deployment import LocalDeployment
 from laas.sim.regional import route_fixes
 from laas.sim.scenario import hamburg_scenario, simulate
+from laas.worker.regions import split
 from ldm import RotationPolicy, SigningKey
 from ldm.local.brokers import free_port
 

@@ -30,8 +30,8 @@ from laas.errors import MapError, TraceError
 from laas.map.geojson import read_geojson
 from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
-from laas.service import LaasService
 from laas.sim.trace import TraceLine, read_trace
+from laas.worker.service import LaasService
 from ldm import Core, KeyPair, LdmError, Participant, Provider, Request, ServiceSpec
 from ldm.client.participant import Session
 from ldm.security.crypto import aad

@@ -101,20 +101,24 @@ def test_a_worker_refuses_a_hand_over_it_cannot_open_and_answers_the_fix(
     import time
 
     from laas.worker.regions import split
-    from laas.worker.service import LaasService
-    from ldm import Request
-    from ldm.security.crypto import family_cipher
+    from laas.worker.service import LaasService, service_spec
+    from ldm import Provider, Request
     from ldm.security.identity import SigningKey
 
-    region = split(hamburg_map, 2)[1]
-    service = LaasService(
-        hamburg_map, CONFIG, region=region, family=family_cipher(SigningKey.generate(), "laas")
-    )
-    other = family_cipher(SigningKey.generate(), "laas")
+    regions = split(hamburg_map, 2)
+
+    def provider(k: int) -> Provider:  # never started: only its keys are used
+        spec = service_spec(regions[k])
+        return Provider.create(
+            "mqtt://127.0.0.1:1", spec, lambda r: {}, identity=SigningKey.generate()
+        )
+
+    service = LaasService(hamburg_map, CONFIG, region=regions[1], shared=provider(1))
+    other = provider(0)  # a regional worker under another identity
     scenario = hamburg_scenario()
     fix = simulate(hamburg_map, scenario, scenario.errors, seed=4).fixes[0].measurement
     now = int(time.time() * 1000)
-    tokens = [other.seal(b"x", "laas-handover/1"), "not sealed"]
+    tokens = [other.seal_shared(b"x", "laas-handover/1"), "not sealed"]
     replies = service.handle_many(
         [
             Request(

@@ -18,8 +18,8 @@ import pytest
 
 from laas.map.hdmap import HdMap
 from laas.models import ErrorReply, read_reply
-from laas.service import LaasService, start_worker
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
+from laas.worker.service import LaasService, start_worker
 from ldm import (
     ConnectError,
     Core,
@@ -243,7 +243,7 @@ def test_laas_survives_broker_worker_and_core_restarts(
 
     # The user core crashes; a new one knows no session, and participants re-request.
     assert d.user_core is not None
-    d.user_core.stop_worker()
+    d.user_core.stop_dispatch()
     d.user_core.cluster.kill()
     assert d.user_core.backbone is not None
     d.user_core.backbone.kill()
@@ -430,7 +430,7 @@ def test_a_flooding_participant_is_rate_limited_without_slowing_others() -> None
 def test_the_provider_sheds_load_past_its_queue_and_counts_it() -> None:
     provider = Provider.create("mqtt://127.0.0.1:9", ECHO, EchoService(), max_queue=50)
     try:
-        for i in range(1_000):  # the worker thread is not running: nothing drains
+        for i in range(1_000):  # the dispatch thread is not running: nothing drains
             provider.sink(Message(f"ldm/svc/echo/in/p{i}", b"{}", 0, False, "svc"))
         assert provider.stats.dropped_overload == 950
         assert provider._queue.qsize() == 50

@@ -16,8 +16,8 @@ import yaml  # type: ignore[import-untyped]
 
 from laas.engine.engine import EngineStats
 from laas.map.hdmap import HdMap
-from laas.metrics import ENGINE_COUNTERS, FIX_OUTCOMES
-from laas.service import WorkerStats
+from laas.worker.metrics import ENGINE_COUNTERS, FIX_OUTCOMES
+from laas.worker.service import WorkerStats
 from ldm import BrokerSettings, CoreStats, Participant, ProviderStats
 from ldm.local.brokers import free_port
 from ldm.local.embedded import EmbeddedBroker
@@ -72,11 +72,11 @@ def test_a_core_is_live_at_once_and_ready_only_while_connected(tmp_path: Path) -
     broker = EmbeddedBroker(port=port)
     try:
         base = core.metrics_base()  # served before the core connects
-        # live as soon as its worker thread runs, a moment after the server is up
+        # live as soon as its dispatch thread runs, a moment after the server is up
         wait_until(lambda: checks(base, "/healthz")[0] == 200, timeout=10.0)
         assert checks(base, "/healthz") == (
             200,
-            {"status": "ok", "checks": {"core late: worker thread": True}},
+            {"status": "ok", "checks": {"core late: dispatch thread": True}},
         )
         assert checks(base, "/readyz") == (
             503,

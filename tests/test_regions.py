@@ -10,12 +10,12 @@ import pytest
 from laas.config import EngineConfig
 from laas.errors import ConfigError
 from laas.map.hdmap import HdMap
-from laas.regions import parse_region, split
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
-from laas.service import service_spec
 from laas.sim.scenario import hamburg_scenario, simulate
 from laas.sim.score import answer_trace, score
+from laas.worker.regions import parse_region, split
+from laas.worker.service import service_spec
 from ldm import BrokerSettings
 from ldm.client.routing import covers, depth
 from ldm.local.brokers import BrokerKind
@@ -100,7 +100,7 @@ def test_a_standby_takes_over_when_the_worker_dies(
     import threading
     import time
 
-    from laas.service import start_worker
+    from laas.worker.service import start_worker
     from ldm import Participant, RoutedSession
     from ldm.provider.standby import wait_until_vacant
 
@@ -159,7 +159,7 @@ def test_a_standby_takes_over_when_the_worker_dies(
 
 
 def test_child_processes_get_their_region_identity_and_ports() -> None:
-    from laas.run.workers import child_argv
+    from laas.worker.processes import child_argv
 
     argv = ["--cluster", "mqtt://h:1", "--processes", "3", "--metrics-port=9000", "--http", "0"]
     child = child_argv(argv, 1, 3, Path("/k.pem"))
@@ -275,7 +275,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
     from laas.engine import Engine
     from laas.sim.regional import route_fixes
     from ldm import CryptoError, Participant, RoutedSession
-    from ldm.security.crypto import family_cipher
+    from ldm.security.crypto import region_cipher
     from ldm.security.identity import SigningKey
     from ldm.transport.mqtt import Event, Message, Transport
 
@@ -335,7 +335,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
         assert b'"alpha"' not in payload and b'"lanes"' not in payload
         assert not any(t[:64].encode() in payload for t in tokens)
     with pytest.raises(CryptoError):
-        family_cipher(SigningKey.generate(), "laas").open(tokens[-1], "laas-handover/1")
+        region_cipher(SigningKey.generate(), "laas").open(tokens[-1], "laas-handover/1")
     print(
         f"\nhand-over: worker 2's first answer lane {first['lane']}, accuracy "
         f"{first['accuracy']:.2f} m (one worker {reference.accuracy:.2f} m), "

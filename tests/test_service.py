@@ -6,7 +6,7 @@ import math
 from typing import Any
 
 from laas.map.hdmap import HdMap
-from laas.service import LaasService, WorkerConfig
+from laas.worker.service import LaasService, WorkerConfig
 from ldm import Request
 
 from .helpers import Clock
@@ -133,7 +133,7 @@ def test_an_observer_sees_each_answered_fix_and_cannot_stop_the_answers(
 ) -> None:
     """The observer (a live map) gets the answered fixes of each batch with their
     pseudonyms; refused fixes are not shown, and an observer that fails costs no reply."""
-    from laas.service import Observation
+    from laas.worker.service import Observation
 
     seen: list[Observation] = []
     service = LaasService(hamburg_map, clock=Clock(), wall_clock=Clock(NOW))

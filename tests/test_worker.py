@@ -1,5 +1,5 @@
 """The worker as a library: a worker process's whole life (`laas.worker.serve_worker`),
-and the old module names that still name its parts."""
+and the package that names its parts."""
 
 from __future__ import annotations
 
@@ -14,27 +14,13 @@ from pathlib import Path
 
 import pytest
 
-import laas.asyncapi
-import laas.metrics
-import laas.regions
-import laas.run.workers
-import laas.service
 import laas.worker
 from laas.map.bundled import bundled_map
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
-from laas.worker import (
-    ServeOptions,
-    WorkerConfig,
-    asyncapi,
-    metrics,
-    processes,
-    regions,
-    serve_worker,
-    service,
-)
+from laas.worker import ServeOptions, WorkerConfig, regions, serve_worker, service
 from ldm import BrokerSettings, KeyPair, Participant
 from ldm.local.brokers import start_broker
 from ldm.security.crypto import aad
@@ -94,17 +80,9 @@ def test_serve_worker_serves_a_region_and_says_what_it_did(
     assert said[-1] == f"laas worker: stopped; {stats.answered} answered, 0 refused"
 
 
-def test_the_old_module_names_name_the_workers_parts() -> None:
-    for old, new in (
-        (laas.service, service),
-        (laas.metrics, metrics),
-        (laas.regions, regions),
-        (laas.asyncapi, asyncapi),
-        (laas.run.workers, processes),
-    ):
-        assert old.__all__ == new.__all__
-        assert all(getattr(old, name) is getattr(new, name) for name in new.__all__)
+def test_the_worker_package_names_its_parts() -> None:
     assert laas.worker.LaasService is service.LaasService
+    assert laas.worker.split is regions.split
 
 
 def _delayed_input_answered(url: str, delay: float) -> bool:

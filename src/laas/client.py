@@ -6,7 +6,7 @@
 The client is one LDM participant (`ldm.Participant`): its own connection to the
 user-cluster broker, its own session, pseudonyms and end-to-end encryption. It finds the
 service as every laas client does (`laas.discovery`): one worker named ``laas``, or the
-regional workers of the ``laas`` family, and sends each fix to the worker whose region
+regional workers of ``laas``, and sends each fix to the worker whose region
 holds it (`ldm.RoutedSession`), handing the user over at a border.
 
 While the session keeps quiet after a change of pseudonym (the core's rotation policy),

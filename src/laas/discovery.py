@@ -1,9 +1,9 @@
 """How a laas client finds the service: one rule, used by the bridges and the simulator.
 
 A provider offers `name` when it is the service of that name (one worker for the whole
-map) or a member of the family of that name (a regional worker, ``laas-1of2`` of the
-family ``laas``: `laas.regions`). A client waits until the cluster's retained service
-list shows one, then routes each fix to the provider whose coverage holds it
+map) or serves a region of it (a regional worker, ``laas-1of2`` of ``laas``:
+`laas.worker.regions`). A client waits until the cluster's retained service list shows
+one, then routes each fix to the provider whose coverage holds it
 (`ldm.RoutedSession`).
 """
 
@@ -18,7 +18,7 @@ __all__ = ["offers", "wait_for_service"]
 
 
 def offers(description: ServiceDescription, name: str = SERVICE_NAME) -> bool:
-    """Whether the listed provider serves `name`: by its own name or its family."""
+    """Whether the listed provider serves `name`: by its own name or as a region of it."""
     return name in (description.name, description.family)
 
 
@@ -34,7 +34,7 @@ def wait_for_service(
             return found
         if time.monotonic() >= deadline:
             raise TimeoutError(
-                f"no {name!r} service (nor a regional worker of the {name!r} family) "
+                f"no {name!r} service (nor a regional worker of it) "
                 f"appeared in the cluster's service list within {timeout:g} s; is `laas "
                 "worker` running and are both LDM cores connected?"
             )

@@ -269,9 +269,9 @@ class CoreConfig(_Settings):
     max_payload: int = Field(default=64 * 1024, ge=256)
     max_clock_skew: float = Field(default=30.0, gt=0)
     max_queue: int = Field(default=100_000, ge=1)
-    """Messages waiting for the core's worker; more are dropped (``dropped_overload``)."""
+    """Messages waiting for the core's dispatch thread; more are dropped (``dropped_overload``)."""
     max_batch: int = Field(default=512, ge=1)
-    """Messages the core's worker takes at once from what waited; the envelopes among
+    """Messages the core's dispatch thread takes at once from what waited; the envelopes among
     them bound for one provider or core leave as one batch (`ldm.wire.batch`)."""
     retain_sweep: float = Field(default=5.0, gt=0)
     """Seconds between re-subscriptions of the participant filter, after which the core

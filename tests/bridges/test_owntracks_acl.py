@@ -17,7 +17,7 @@ from laas.bridges.owntracks import OwnTracksBridge, OwnTracksConfig, read_locati
 from laas.bridges.pool import DevicePool, PoolConfig
 from laas.map.hdmap import HdMap
 from laas.models import GpsMeasurement
-from laas.service import start_worker
+from laas.worker.service import start_worker
 from ldm import Core
 from ldm.config import BrokerSettings
 from ldm.local.brokers import MosquittoBroker, wait_for

@@ -25,9 +25,9 @@ from ldm.core.stats import CoreStats
 from ldm.local.brokers import MosquittoBroker, RunningBroker, mosquitto_acl, start_broker, wait_for
 from ldm.local.floodbench import format_report, run_flood_bench
 from ldm.local.pytest_plugin import need_mosquitto
+from ldm.transport.dispatch import Dispatcher
 from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Event, Message, Transport
-from ldm.transport.worker import Worker
 from ldm.wire.messages import Announcement, Envelope, ServiceDescription, SessionRequest
 
 from .deployment import ECHO, EchoService, has_service
@@ -107,27 +107,27 @@ def test_producers_on_several_threads_keep_each_keys_order() -> None:
         assert [n for k, n in got if k == key] == list(range(2000))
 
 
-def test_a_worker_takes_its_items_from_a_fair_inbox() -> None:
+def test_a_dispatcher_takes_its_items_from_a_fair_inbox() -> None:
     seen: list[str] = []
     done = threading.Event()
 
-    class Recorder(Worker[str]):
+    class Recorder(Dispatcher[str]):
         def handle(self, item: str) -> None:
             seen.append(item)
             if len(seen) == 5:
                 done.set()
 
     inbox: FairQueue[object] = FairQueue()
-    worker = Recorder("recorder", 0.05, inbox=inbox)
+    dispatcher = Recorder("recorder", 0.05, inbox=inbox)
     for item, key in (("m1", "m"), ("m2", "m"), ("m3", "m"), ("a1", "a")):
         inbox.offer(item, key)
-    worker.put("ctl")
-    worker.start_worker()
+    dispatcher.put("ctl")
+    dispatcher.start_dispatch()
     try:
         assert done.wait(5)
         assert seen == ["ctl", "m1", "a1", "m2", "m3"]
     finally:
-        worker.stop_worker()
+        dispatcher.stop_dispatch()
 
 
 # --- the core's intake, in-process ------------------------------------------------------
@@ -146,7 +146,7 @@ def outcomes(s: CoreStats) -> int:
 @pytest.fixture
 def edge() -> Iterator[Core]:
     """A core that knows `echo` and holds alice's session (key ALICE, no secret); never
-    connected, its worker not running: a test hands it messages through `sink` (what
+    connected, its dispatch thread not running: a test hands it messages through `sink` (what
     paho's thread calls) and handles the queued items itself, in the queue's order."""
     core = Core.create("edge", UNREACHABLE, rate=10.0, burst=10.0)
     description = ServiceDescription(**ECHO.model_dump(), public_key=KeyPair().public)

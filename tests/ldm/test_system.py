@@ -176,7 +176,7 @@ def test_provider_that_vanishes_is_dropped_by_will_and_by_ttl(deployment: Deploy
     # A provider that stays connected but stops re-announcing expires after the TTL.
     silent = echo_provider(d.service.url, EchoService())
     assert wait_for(has_service(p, "echo"), 5)
-    silent.stop_worker()  # no more announcements, connection kept
+    silent.stop_dispatch()  # no more announcements, connection kept
     start = time.monotonic()
     assert wait_for(lacks_service(p, "echo"), FAST["service_ttl"] + 3)
     assert time.monotonic() - start >= FAST["service_ttl"] - 0.6
@@ -294,7 +294,7 @@ def test_a_vanished_core_takes_its_services_with_it(broker_factory) -> None:
     try:
         with Participant.create(user.url, client_id="lee-car") as p:
             assert wait_for(has_service(p, "echo"), 5)
-            service_core.stop_worker()
+            service_core.stop_dispatch()
             assert service_core.backbone is not None
             service_core.backbone.kill()  # a crash: the broker publishes the core's will
             assert wait_for(lacks_service(p, "echo"), 5)

@@ -220,13 +220,13 @@ def test_a_message_on_a_topic_not_subscribed_to_never_reaches_the_owner() -> Non
     assert transport.dropped_foreign == 2
 
 
-def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
+def test_stopping_a_dispatcher_under_a_backlog_ends_before_the_next_item() -> None:
     from ldm.local.brokers import wait_for
-    from ldm.transport.worker import Worker
+    from ldm.transport.dispatch import Dispatcher
 
     entered, release = threading.Event(), threading.Event()
 
-    class Blocking(Worker[int]):
+    class Blocking(Dispatcher[int]):
         handled = 0
 
         def handle(self, item: int) -> None:
@@ -234,25 +234,25 @@ def test_stopping_a_worker_under_a_backlog_ends_before_the_next_item() -> None:
             assert release.wait(5), "never released"
             self.handled += 1
 
-    worker = Blocking("blocking", 1.0)
+    dispatcher = Blocking("blocking", 1.0)
     for i in range(1_000):
-        worker.put(i)
-    worker.start_worker()
+        dispatcher.put(i)
+    dispatcher.start_dispatch()
     assert entered.wait(5)  # inside the first item, 999 waiting behind it
-    stopper = threading.Thread(target=worker.stop_worker)
+    stopper = threading.Thread(target=dispatcher.stop_dispatch)
     stopper.start()
-    assert wait_for(worker._stopping.is_set, 5)  # the stop is asked for ...
+    assert wait_for(dispatcher._stopping.is_set, 5)  # the stop is asked for ...
     release.set()  # ... before the first item ends
     stopper.join(5)
-    assert not stopper.is_alive() and not worker._thread.is_alive()
-    assert worker.handled == 1  # the stop did not wait for the backlog
+    assert not stopper.is_alive() and not dispatcher._thread.is_alive()
+    assert dispatcher.handled == 1  # the stop did not wait for the backlog
 
 
-def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> None:
+def test_a_full_dispatcher_still_takes_a_reconnect_and_counts_what_it_drops() -> None:
+    from ldm.transport.dispatch import Dispatcher
     from ldm.transport.mqtt import Connected, Event, Message
-    from ldm.transport.worker import Worker
 
-    class Recorder(Worker[Event]):
+    class Recorder(Dispatcher[Event]):
         dropped = 0
         seen: list[Event]
 
@@ -262,16 +262,16 @@ def test_a_full_worker_still_takes_a_reconnect_and_counts_what_it_drops() -> Non
         def overflowed(self) -> None:
             self.dropped += 1
 
-    worker = Recorder("full", 1.0, limit=1)
-    worker.seen = []
+    dispatcher = Recorder("full", 1.0, limit=1)
+    dispatcher.seen = []
     message = Message(topic="t", payload=b"x", qos=0, retain=False, source="broker")
-    worker.sink(message)
-    worker.sink(message)  # past the limit: dropped and counted
-    worker.sink(Connected("broker"))  # a reconnect is never dropped
-    worker.start_worker()
+    dispatcher.sink(message)
+    dispatcher.sink(message)  # past the limit: dropped and counted
+    dispatcher.sink(Connected("broker"))  # a reconnect is never dropped
+    dispatcher.start_dispatch()
     from ldm.local.brokers import wait_for
 
-    assert wait_for(lambda: len(worker.seen) == 2, 5)
-    worker.stop_worker()
-    assert worker.dropped == 1
-    assert isinstance(worker.seen[-1], Connected)
+    assert wait_for(lambda: len(dispatcher.seen) == 2, 5)
+    dispatcher.stop_dispatch()
+    assert dispatcher.dropped == 1
+    assert isinstance(dispatcher.seen[-1], Connected)

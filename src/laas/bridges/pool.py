@@ -7,7 +7,7 @@ pseudonyms and keys at the user core) the first time it is heard of, and forgets
 closing the participant, once it has been silent for `track_timeout` seconds.
 
 A device finds the service as every laas client does (`laas.discovery`): the worker
-named `laas`, or the regional workers of the `laas` family. Each fix goes to the worker
+named `laas`, or the regional workers of `laas`. Each fix goes to the worker
 whose region holds it (`ldm.RoutedSession`), so a device that drives across a border is
 handed over to the next worker.
 

@@ -27,7 +27,7 @@ participant, on one clock in one process.
 
 The floor, in the same run on the same user broker: each participant process has one
 plain MQTT client (`ldm.transport.Transport`) that publishes a ping beside every fourth
-fix; the echo process takes it off its queue on a worker thread (the hand-off every LDM
+fix; the echo process takes it off its queue on a dispatch thread (the hand-off every LDM
 component makes) and publishes it back. The LDM overhead is p50(LDM) / p50(bare).
 
 The cost of privacy: the Hamburg scenario (`laas.sim.scenario.hamburg_scenario`) runs
@@ -75,8 +75,8 @@ from laas.sim.scenario import (
 from laas.sim.score import score
 from ldm import BrokerSettings, RoutedSession, Session
 from ldm.local.brokers import find_mosquitto
-from ldm.ops.hops import Hops
 from ldm.transport import Event, Message, Transport
+from ldm.transport.hops import Hops
 
 __all__ = [
     "STAGES",
@@ -115,7 +115,7 @@ class BenchConfig:
     connect_rate: float = 200.0  # new connections per second, over all processes
     spread: bool = False  # fixes spread over the second, not all on the whole second
     privacy: bool = True  # the two Hamburg runs after the load (the cost of privacy)
-    workers: int = 1  # worker processes, each serving a region of the map (laas.regions)
+    workers: int = 1  # worker processes, each serving a region of the map (laas.worker.regions)
 
     def __post_init__(self) -> None:
         if self.participants < 1:
@@ -245,7 +245,7 @@ STAGES = (
     ("worker: open, engine, checks", "taken", "answered"),
     ("worker -> user core (reply)", "answered", "delivered"),
 )
-"""The stages `laas bench` times: (name, from point, to point) of `ldm.ops.hops`."""
+"""The stages `laas bench` times: (name, from point, to point) of `ldm.transport.hops`."""
 
 
 def stage_latencies(hops: Hops) -> dict[str, Latency]:
@@ -416,7 +416,7 @@ def _is_ping(topic: str) -> bool:
 
 
 def _echo_process(url: str, tag: str, ready: Any, stop: Any) -> None:
-    """Echo every ping on the user broker back as a pong, via a worker thread."""
+    """Echo every ping on the user broker back as a pong, via a dispatch thread."""
     inbox: queue.SimpleQueue[Event] = queue.SimpleQueue()
     transport = Transport(BrokerSettings.of(url), client_id=f"bench-echo-{tag}", sink=inbox.put)
     transport.subscribe(_PING.format(shard="+"), 0)

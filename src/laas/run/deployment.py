@@ -32,9 +32,9 @@ from laas.worker.regions import Region, split
 from laas.worker.service import LaasService, WorkerConfig, start_worker
 from ldm import Core, Provider
 from ldm.local.brokers import BrokerKind, RunningBroker, find_mosquitto, start_broker
-from ldm.ops.hops import Hops
 from ldm.ops.metrics import Metrics, MetricsServer
 from ldm.security.identity import SigningKey
+from ldm.transport.hops import Hops
 from ldm.wire.rotation import RotationPolicy
 
 __all__ = ["SIMULATION_LIMITS", "BrokerChoice", "LocalDeployment"]
@@ -104,7 +104,7 @@ class LocalDeployment:
         self.identity = SigningKey.generate()
         """The laas worker's identity, pinned by the cores and by `trust`'s participants."""
         self.hops = hops
-        """Where the cores and the worker note each input's passage (`ldm.ops.hops`)."""
+        """Where the cores and the worker note each input's passage (`ldm.transport.hops`)."""
         self._processes: list[_WorkerProcess] = []
         self._worker_answered = -1
         self.worker_cpu = math.nan

@@ -4,7 +4,7 @@ Each road user is still its own `ldm.Participant` (its own MQTT connection, clie
 session and pseudonym), but no participant has a thread of its own: one
 `ldm.transport.ClientLoop` thread drives all their sockets with paho's external loop
 over epoll, and handles each participant's messages and periodic tick as they come
-(`Participant.start_on`), instead of a paho network thread and a worker thread per
+(`Participant.start_on`), instead of a paho network thread and a dispatch thread per
 participant (500 participants were 1,000 threads, and the GIL hand-offs between them
 cost more CPU than the LDM cores themselves).
 
@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from laas.run.participants import Login, wait_for_service
-from laas.service import SERVICE_NAME
+from laas.worker.service import SERVICE_NAME
 from ldm import Participant, RoutedSession, Session
 from ldm.errors import ConnectError
 from ldm.transport import ClientLoop

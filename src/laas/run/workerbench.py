@@ -39,9 +39,9 @@ import numpy as np
 from laas.map.bundled import bundled_map
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
-from laas.service import LaasService, WorkerConfig, service_spec
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import simulate_with
+from laas.worker.service import LaasService, WorkerConfig, service_spec
 from ldm import KeyPair, Provider
 from ldm.security.crypto import aad
 from ldm.transport import Message

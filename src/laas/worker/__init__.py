@@ -1,17 +1,14 @@
 """The worker: the LaaS engine offered as the LDM service `laas`, one process per area.
 
-    service     `LaasService` (decode, check, correct, answer), `start_worker`, the
-                limits on its input (`WorkerConfig`) and what it did (`WorkerStats`)
-    regions     the map cut into strips, one regional worker each (``laas-1of2`` ...)
-    metrics     its Prometheus collector (`watch_worker`)
-    asyncapi    the AsyncAPI document of its messages
-    processes   several workers of one map, one process each (`laas worker --processes`)
-    dashboard   its live map: a web page over HTTP and server-sent events
-    serve       a worker process's whole life (`serve_worker`): standby, region, metrics,
-                live map, stop
-
-`laas.service`, `laas.regions`, `laas.metrics`, `laas.asyncapi` and `laas.run.workers`
-name the same objects for the code that imports them from there.
+service     `LaasService` (decode, check, correct, answer), `start_worker`, the
+            limits on its input (`WorkerConfig`) and what it did (`WorkerStats`)
+regions     the map cut into strips, one regional worker each (``laas-1of2`` ...)
+metrics     its Prometheus collector (`watch_worker`)
+asyncapi    the AsyncAPI document of its messages
+processes   several workers of one map, one process each (`laas worker --processes`)
+dashboard   its live map: a web page over HTTP and server-sent events
+serve       a worker process's whole life (`serve_worker`): standby, region, metrics,
+            live map, stop
 """
 
 from laas.worker.regions import Region, parse_region, split

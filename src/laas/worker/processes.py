@@ -1,10 +1,10 @@
 """`laas worker --processes N`: one worker node using all its cores.
 
-The map is cut into N regions (`laas.regions`) and each is served by a `laas worker
+The map is cut into N regions (`laas.worker.regions`) and each is served by a `laas worker
 --region K/N` child process, so each process owns the common-error areas and the road
 elements of its strip, and participants route their fixes to it by position
 (`ldm.client.routing.RoutedSession`). All children serve under one identity (participants pin
-the `laas` family to it): the key file given with ``--identity``, or one made for this
+`laas` to it): the key file given with ``--identity``, or one made for this
 run. Ports given for metrics or the live map are numbered on: child K gets port + K - 1
 (0 stays 0, a free port each). The supervisor ends every child when it is told to stop
 or when one of them exits.

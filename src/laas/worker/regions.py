@@ -1,7 +1,7 @@
 """Regions: one map served by several workers, each for its own strip of it.
 
 `split` cuts the map's bounds into ``count`` strips across its longer side, of equal
-width. Each worker serves the `laas` family as a service of its own name
+width. Each worker serves a region of `laas` as a service of its own name
 (``laas-2of3``) and announces its coverage: its strip grown by ``overlap`` metres into
 each neighbour (and by ``margin`` outwards, so fixes just off the map still find a
 worker), as a polygon of longitude and latitude. A participant sends each fix to the
@@ -12,10 +12,10 @@ error of that side from its own users all along.
 
 Hand-over (`laas.worker.service`): while a user's fix lies past its worker's border
 (in the overlap, outside its ``strip``), the worker adds the user's state to the
-answer, sealed for the family (`laas.engine.handover`); the participant hands the
+answer, sealed with the region key (`laas.engine.handover`); the participant hands the
 latest to the next worker with its first fix there (`ldm.client.routing.RoutedSession`), which
 goes on with the user's track and lane table. And each worker sends the others its own
-users' evidence about the common error of its areas (a family note, every
+users' evidence about the common error of its areas (a sealed note, every
 ``share_every`` seconds), which those whose coverage holds an area fold into theirs, so
 the common error on either side of a border is estimated from every user near it.
 """

@@ -5,7 +5,7 @@ subscription, keeps a Kalman track per pseudonym (a rotated pseudonym simply sta
 new track; the common-error estimate, which is not per user, carries the group over),
 and answers each accepted fix with a `CorrectedPosition`. A fix it cannot use gets an
 error reply that names the field and the problem. The handler runs on the provider's
-one worker thread, so the engine needs no lock; it takes the fixes that waited together
+one dispatch thread, so the engine needs no lock; it takes the fixes that waited together
 as one batch (`handle_many`), and the engine gives each the answer it would have given
 alone.
 
@@ -31,12 +31,13 @@ What the worker refuses, each with an error reply ``{"error": {"kind", "message"
 
 A regional worker (`laas.worker.regions`) hands its users over at its border: while a
 fix lies past the border (outside its ``strip``), the answer carries the user's state
-(`Engine.export_user`) sealed with the family's key (`ldm.security.crypto.family_cipher`)
-as ``handover``; a fix that brings one (the first to this worker, `ldm.RoutedSession`)
-has it opened and taken (`Engine.import_user`) before the engine answers it. One that
-cannot be opened or read is counted (``handover_refused``) and the fix answered as a new
-track's. Every ``share_every`` seconds the worker sends its users' evidence about the
-common error of its areas to the family (`Provider.note`), and takes what the others
+(`Engine.export_user`) sealed with the key the regional workers share
+(`ldm.Provider.seal_shared`) as ``handover``; a fix that brings one (the first to this
+worker, `ldm.RoutedSession`) has it opened (`ldm.Provider.open_shared`) and taken
+(`Engine.import_user`) before the engine answers it. One that cannot be opened or read
+is counted (``handover_refused``) and the fix answered as a new track's. Every
+``share_every`` seconds the worker sends its users' evidence about the common error of
+its areas to the other regional workers (`Provider.note`), and takes what the others
 send for the areas its coverage holds (`Engine.import_areas`).
 
 A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
@@ -54,7 +55,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import version
-from typing import Any
+from typing import Any, Protocol
 
 from pydantic import Field, ValidationError
 
@@ -72,7 +73,6 @@ from laas.models import HANDOVER_MAX, CorrectedPosition, ErrorReply, GpsMeasurem
 from laas.worker.regions import Region
 from ldm import BrokerSettings, Provider, Request, ServiceSpec
 from ldm.errors import CryptoError
-from ldm.security.crypto import SessionCipher, family_cipher
 from ldm.security.identity import SigningKey
 
 __all__ = [
@@ -91,9 +91,18 @@ _HANDOVER_AAD = "laas-handover/1"
 log = logging.getLogger(__name__)
 
 
+class SharedKey(Protocol):
+    """Seals and opens what only the regional workers may read (`ldm.Provider`)."""
+
+    def seal_shared(self, plaintext: bytes, context: str) -> str: ...
+
+    def open_shared(self, sealed: str, context: str) -> bytes: ...
+
+
 def service_spec(region: Region | None = None) -> ServiceSpec:
     """What the worker announces: name, version and the two wire schemas; a regional
-    worker, its own name in the `laas` family and its coverage (`laas.regions`)."""
+    worker, its own name among the regions of `laas` and its coverage
+    (`laas.worker.regions`)."""
     return ServiceSpec(
         name=SERVICE_NAME if region is None else region.name,
         version=version("laas"),
@@ -203,15 +212,17 @@ class LaasService:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         region: Region | None = None,
-        family: SessionCipher | None = None,
+        shared: SharedKey | None = None,
     ) -> None:
         self.engine = Engine(hdmap, config)
         self.region = region
-        self._family = family if region is not None else None
-        """Seals and opens hand-overs; None: no hand-over (one worker for the map)."""
+        self.shared = shared if region is not None else None
+        """Seals and opens hand-overs (the worker's `ldm.Provider`, which `start_worker`
+        sets); None: no hand-over (one worker for the map)."""
         self.notes: Callable[[bytes], None] | None = None
-        """Sends the area evidence to the family (`Provider.note`); None: not shared."""
-        if self._family is not None:
+        """Sends the area evidence to the other regional workers (`Provider.note`); None:
+        not shared."""
+        if region is not None:
             self.engine.record_areas()
         self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
@@ -235,12 +246,12 @@ class LaasService:
         self._next_share = -math.inf  # fix time (s) of the next share of area evidence
         self._sessions: OrderedDict[str, _Session] = OrderedDict()  # least recent first
         self.observer: Callable[[Sequence[Observation]], None] | None = None
-        """Shown every batch of answered fixes, on the worker thread (a live map);
+        """Shown every batch of answered fixes, on the dispatch thread (a live map);
         None: nobody watches. It must be quick, and it learns only what the worker
         knows: pseudonyms, fixes and answers."""
         self.timer: Callable[[str, float], None] | None = None
         """Told ("engine", seconds) for each batch the engine answers; None: not timed
-        (`laas.metrics.watch_worker` sets it)."""
+        (`laas.worker.metrics.watch_worker` sets it)."""
 
     @property
     def sessions(self) -> int:
@@ -284,7 +295,7 @@ class LaasService:
                 self.timer("engine", spent)
             for (i, _, m), answer in zip(work, answers, strict=True):
                 replies[i] = self._reply(m, answer)
-            if self._family is not None:
+            if self.shared is not None:
                 self._hand_out(work, answers, replies)
             if self.observer is not None:
                 seen = [
@@ -309,9 +320,9 @@ class LaasService:
             if m.handover is None:
                 continue
             try:
-                if self._family is None:
+                if self.shared is None:
                     raise CryptoError("this worker serves no region: it takes no hand-over")
-                state = user_from_bytes(self._family.open(m.handover, _HANDOVER_AAD))
+                state = user_from_bytes(self.shared.open_shared(m.handover, _HANDOVER_AAD))
                 if self.engine.import_user(pseudonym, state):
                     self.stats.handed_in += 1
             except (CryptoError, HandoverError) as exc:
@@ -333,7 +344,7 @@ class LaasService:
     ) -> None:
         """Add the user's sealed state to each answer to a fix past the border."""
         assert self.region is not None and self.region.strip is not None
-        assert self._family is not None
+        assert self.shared is not None
         x0, y0, x1, y1 = self.region.strip
         xy = self._map.projection.to_utm_array(
             [m.longitude for _, _, m in work], [m.latitude for _, _, m in work]
@@ -343,7 +354,7 @@ class LaasService:
                 continue
             state = self.engine.export_user(pseudonym)
             if state is not None:
-                token = self._family.seal(user_to_bytes(state), _HANDOVER_AAD)
+                token = self.shared.seal_shared(user_to_bytes(state), _HANDOVER_AAD)
                 if len(token) > HANDOVER_MAX:  # a wide lane table: the user starts afresh
                     self.stats.handover_skipped += 1
                     continue
@@ -352,7 +363,7 @@ class LaasService:
 
     def _share(self, t: float) -> None:
         """Every share_every s of the fixes' time (a simulation sped up shares as
-        often as live): this worker's own area evidence to the family."""
+        often as live): this worker's own area evidence to the other regional workers."""
         if self.notes is None or self.region is None or t < self._next_share:
             return
         self._next_share = t + self.config.share_every
@@ -364,7 +375,7 @@ class LaasService:
                 log.exception("the area evidence was not sent; it is lost to the neighbours")
 
     def take_note(self, sender: str, payload: bytes) -> None:
-        """A sibling's area evidence (`Provider`'s ``on_note``, the worker thread)."""
+        """A sibling's area evidence (`Provider`'s ``on_note``, the dispatch thread)."""
         try:
             self.engine.import_areas(sender, areas_from_bytes(payload), self._reach())
         except HandoverError as exc:
@@ -486,7 +497,7 @@ def start_worker(
     **provider_settings: Any,
 ) -> tuple[Provider, LaasService]:
     """Connect to a service-cluster broker, announce `laas` (or, for a region, its
-    worker of the `laas` family) and serve until stopped.
+    regional worker of `laas`) and serve until stopped.
 
     ``provider_settings`` go to `ldm.ProviderConfig` (``max_queue``, ``max_age``,
     ``data_qos``, ...).
@@ -495,8 +506,7 @@ def start_worker(
     if identity is None and region is not None:
         path = provider_settings.get("identity_file")
         identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
-    family = None if region is None else family_cipher(identity, SERVICE_NAME)
-    service = LaasService(hdmap, config, worker, region=region, family=family)
+    service = LaasService(hdmap, config, worker, region=region)
     provider = Provider.create(
         cluster,
         service_spec(region),
@@ -507,6 +517,7 @@ def start_worker(
         **provider_settings,
     )
     if region is not None:
+        service.shared = provider
         service.notes = provider.note
     provider.start()
     log.info("laas worker serving map %s on %s", hdmap.source, BrokerSettings.of(cluster).url)

@@ -39,10 +39,10 @@ from ldm.errors import (
     TrustError,
 )
 from ldm.security.crypto import KeyPair, SessionCipher, aad, input_tag
-from ldm.security.identity import canonical, verify
+from ldm.security.identity import verify
 from ldm.security.trust import Trust
+from ldm.transport.dispatch import Dispatcher
 from ldm.transport.mqtt import ClientLoop, Connected, Event, Message, Transport
-from ldm.transport.worker import Worker
 from ldm.wire import topics
 from ldm.wire.messages import (
     LIST_REFRESH,
@@ -53,6 +53,7 @@ from ldm.wire.messages import (
     SessionGrant,
     SessionNotice,
     SessionRequest,
+    canonical,
 )
 from ldm.wire.rotation import RotationPolicy
 
@@ -236,7 +237,7 @@ class Session:
                 ),
             )
 
-    # --- called by its participant (the participant's worker thread) --------------------
+    # --- called by its participant (the participant's dispatch thread) --------------------
 
     def rotate(self, now: float, quiet: bool = True) -> bool:
         """Start a new ephemeral key, at most once per ``rekey_interval`` (else False),
@@ -372,7 +373,7 @@ class Session:
             _settle(p.future, error=error)
 
 
-class Participant(Worker[Event]):
+class Participant(Dispatcher[Event]):
     """A participant client of one user-cluster broker. Use as a context manager."""
 
     def __init__(self, config: ParticipantConfig) -> None:
@@ -421,7 +422,7 @@ class Participant(Worker[Event]):
         return cls(config)
 
     def start(self, timeout: float | None = 10.0) -> Participant:
-        self.start_worker()
+        self.start_dispatch()
         self.transport.start(timeout)
         return self
 
@@ -429,7 +430,7 @@ class Participant(Worker[Event]):
         """Start without threads of its own, for a load generator holding hundreds of
         participants in one process: the connection joins `loop` (`ClientLoop`), each
         message is handled on the loop's thread as it arrives (instead of queued for a
-        worker thread), and the worker's ``tick`` runs from the loop at its interval.
+        dispatch thread), and the dispatcher's ``tick`` runs from the loop at its interval.
         Returns at once; `transport.connected` says when the broker acknowledged."""
         self.transport.attach(loop)
         self.transport.set_sink(self._handle_inline)
@@ -446,7 +447,7 @@ class Participant(Worker[Event]):
         return self
 
     def _handle_inline(self, item: Event) -> None:
-        # As the worker thread would: an error is logged, never raised into paho.
+        # As the dispatch thread would: an error is logged, never raised into paho.
         try:
             self.handle(item)
         except Exception:
@@ -457,7 +458,7 @@ class Participant(Worker[Event]):
 
         No log-off is sent: the core drops idle sessions by itself.
         """
-        self.stop_worker()
+        self.stop_dispatch()
         self.transport.stop()
         error = ConnectError(f"participant {self.client_id!r} stopped before the answer came")
         with self._lock:
@@ -562,7 +563,7 @@ class Participant(Worker[Event]):
             del self._reopening[service]
             return True
 
-    # --- worker thread ----------------------------------------------------------------
+    # --- dispatch thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
         if isinstance(item, Connected):

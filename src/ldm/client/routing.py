@@ -16,11 +16,12 @@ A plain service of the family's own name with no coverage covers everywhere, so 
 participant written for regions works unchanged with one provider.
 
 Hand-over: a provider may put an opaque string ``handover`` in its replies (a regional
-LaaS worker does, near its border: the user's state, sealed for the family's other
-providers, `ldm.security.crypto.family_cipher`). The session keeps the latest one from
-its current provider and adds it, as the input's ``handover`` field, to the first input
-it sends to the next provider, which so goes on where the last one stopped. The
-participant cannot read it; the cores see it only inside the sealed envelopes.
+LaaS worker does, near its border: the user's state, sealed with the region key for
+the family's other providers, `ldm.security.crypto.region_cipher`). The session keeps
+the latest one from its current provider and adds it, as the input's ``handover``
+field, to the first input it sends to the next provider, which so goes on where the
+last one stopped. The participant cannot read it; the cores see it only inside the
+sealed envelopes.
 
 What the cores learn: which provider a pseudonym sends to, so a region, never a
 position (docs/security.md).

@@ -1,6 +1,6 @@
 """The LDM core, one per cluster: `Core` links a cluster broker to the backbone.
 
-core        Core: lifecycle, the worker's dispatch, the participants' boundary
+core        Core: lifecycle, the dispatch thread's work, the participants' boundary
 admission   Admission: participant messages charged to their budgets on paho's threads
 budgets     the token buckets a participant's messages are charged to
 sessions    Sessions: grants, pseudonyms, rotation, expiry

@@ -6,12 +6,12 @@ for its input and for the refusal notices that answer it. `Admission` charges ea
 message to one of them (`Charge`), as far as it can tell cheaply: what looks like a
 session request (`request_like`), its session's input (`SessionKeys`, `tagged`: decoded
 once and its tag checked, here), and everything else. The message then travels to the
-core's worker as an `Admitted`, with what admission decided and the envelope it decoded.
+core's dispatch thread as an `Admitted`, with what admission decided and the envelope it decoded.
 
 `Admission` owns what it decides with: the budgets, what it knows of each session
-(told by the worker after each message that may have changed it, `Admission.know`),
+(told by the dispatch thread after each message that may have changed it, `Admission.know`),
 the correlation ids of recent input (replays), and the clearing of retained junk. Its
-one lock covers these alone; the worker reaches them only through its methods.
+one lock covers these alone; the dispatch thread reaches them only through its methods.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def request_like(payload: bytes) -> bool:
 def tagged(secrets: tuple[bytes, ...], payload: bytes) -> tuple[Envelope, bytes] | None:
     """An input envelope of at most 4 KiB, decoded, that carries a valid tag ``m`` of
     one of the session's secrets (`ldm.security.crypto.input_tag`), with that secret; None for
-    anything else. The core decodes and checks it here, once: the worker takes it as it
+    anything else. The core decodes and checks it here, once: the dispatch thread takes it as it
     is."""
     if len(payload) > _TAG_CHECK_MAX or b'"m"' not in payload:
         return None
@@ -120,7 +120,7 @@ class Admitted(Message):
     ``charge``: the budget that paid for it; ``refused``: over the rate, only its
     ``rejected`` notice is left to send (the notice bucket already paid);
     ``envelope``: the input decoded, its tag checked with ``secret`` (the session's
-    secret when intake took it), so the worker neither decodes nor checks it again."""
+    secret when intake took it), so the dispatch thread neither decodes nor checks it again."""
 
     charge: Charge = "other"
     refused: bool = False
@@ -130,7 +130,7 @@ class Admitted(Message):
 
 class Admission:
     """A core's intake of participant messages (`admit`, on paho's threads), and the
-    notice budgets the worker answers refusals from (`notice`).
+    notice budgets the dispatch thread answers refusals from (`notice`).
 
     ``clear(topic, qos)`` publishes an empty retained message on a participant topic
     (the cluster transport's); ``offered(service)`` tells whether the cluster offers a
@@ -154,7 +154,7 @@ class Admission:
         self._limits: dict[str, Limits] = {}
         self._keys: dict[tuple[str, str], SessionKeys] = {}
         """(client, service) -> what admission knows of the session, to charge its
-        input to the right budget; the worker tells it (`know`)."""
+        input to the right budget; the dispatch thread tells it (`know`)."""
         self._recent: OrderedDict[tuple[str, str, str], float] = OrderedDict()
         """(client, service, c) of input charged to its session in the last ``max_age``,
         oldest first: a replay of one is not the session's."""
@@ -292,7 +292,7 @@ class Admission:
         with self._lock:
             self._stats.dropped_invalid += count
 
-    # --- the worker thread ------------------------------------------------------------
+    # --- the dispatch thread ------------------------------------------------------------
 
     def notice(self, charge: Charge, client: str) -> bool:
         """A token from the notice bucket (10/s) of the client's budget `charge`: False

@@ -22,11 +22,11 @@ session's key), the service, the key. Every refusal is counted and answered on t
 session topic; stale input is dropped.
 
 Threads: paho's threads run `Core.sink` (admission, and cutting batches apart); the
-core's worker thread runs everything else, on what waited, in the fair queue's order.
+core's dispatch thread runs everything else, on what waited, in the fair queue's order.
 The only state both touch is the admission's, behind its own lock.
 
 Pay per batch: a participant's input is decoded and its tag checked once, at
-admission, and the decoded envelope travels with it to the worker. The worker takes
+admission, and the decoded envelope travels with it to the dispatch thread, which takes
 everything that waited (up to ``max_batch``) at once, and the envelopes it forwards to
 one destination (a provider, another core) leave as one batch (`ldm.wire.batch`) once
 it has handled them all; a lone envelope leaves at once. A core forwards the envelope
@@ -50,12 +50,12 @@ from ldm.core.routing import Router
 from ldm.core.services import Catalog
 from ldm.core.sessions import Sessions
 from ldm.core.stats import CoreStats
-from ldm.ops.hops import Hops
 from ldm.security.identity import SigningKey
 from ldm.security.trust import Trust
+from ldm.transport.dispatch import Dispatcher
+from ldm.transport.hops import Hops
 from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
-from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
 from ldm.wire.messages import (
     CoreStatus,
@@ -88,7 +88,7 @@ def single_topic(topic: topics.Topic, pseudonym: str) -> str:
     return topics.provider_reply(topic.service, pseudonym)
 
 
-class Core(Worker[Event]):
+class Core(Dispatcher[Event]):
     """An LDM core. ``start()`` connects and runs it in background threads; ``stop()`` ends it."""
 
     def __init__(self, config: CoreConfig) -> None:
@@ -103,7 +103,7 @@ class Core(Worker[Event]):
         self.stats = CoreStats()
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each participant message admitted on paho's threads
-        (``admit``) and each event handled on the worker thread (``route``); None: not
+        (``admit``) and each event handled on the dispatch thread (``route``); None: not
         timed (`ldm.ops.metrics.Metrics.watch_core` sets it)."""
         path = config.identity_file
         self.identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
@@ -164,8 +164,8 @@ class Core(Worker[Event]):
     # --- lifecycle (caller's thread) --------------------------------------------------
 
     def start(self, timeout: float | None = 10.0) -> Core:
-        """Start the worker and connect; with a timeout, wait for both brokers."""
-        self.start_worker()
+        """Start the dispatch thread and connect; with a timeout, wait for both brokers."""
+        self.start_dispatch()
         self.cluster.start(timeout)
         if self.backbone is not None:
             self.backbone.start(timeout)
@@ -173,7 +173,7 @@ class Core(Worker[Event]):
 
     def stop(self) -> None:
         """Withdraw this core's services from the backbone, clear the list, disconnect."""
-        self.stop_worker()  # state is not touched by the worker after this
+        self.stop_dispatch()  # state is not touched by the dispatch thread after this
         if self.backbone is not None:
             for name in self.catalog.own():
                 self.backbone.publish_and_wait(topics.bb_announce(name), b"", retain=True)
@@ -216,7 +216,7 @@ class Core(Worker[Event]):
 
     @property
     def hops(self) -> Hops | None:
-        """Set to note when each input passes this core (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this core (`ldm.transport.hops`; `laas bench`)."""
         return self.router.hops
 
     @hops.setter
@@ -274,7 +274,7 @@ class Core(Worker[Event]):
         """Delete what the cluster broker retains on a participant's topic."""
         self.cluster.publish(topic, b"", qos=qos, retain=True)
 
-    # --- worker thread ----------------------------------------------------------------
+    # --- dispatch thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
         self.handle_many([item])

@@ -26,7 +26,7 @@ __all__ = ["Notices", "correlation", "describe"]
 
 
 class Notices:
-    """Signs and sends one core's notices (the worker thread's)."""
+    """Signs and sends one core's notices (the dispatch thread's)."""
 
     def __init__(
         self, config: CoreConfig, identity: SigningKey, cluster: Transport, admission: Admission

@@ -7,9 +7,9 @@ to the local participant of its pseudonym (mapped back to its client here, the o
 place that knows it), or back over the backbone.
 
 Envelopes to one destination (a provider, another core) wait in the `Outbox` while the
-core's worker handles what waited, then leave as one batch (`ldm.wire.batch`; `flush`).
+core's dispatch thread handles what waited, then leave as one batch (`ldm.wire.batch`; `flush`).
 A core forwards the bytes it received (decoded and checked, not encoded again); the
-user core drops the participant's tag first. Only the core's worker thread calls it.
+user core drops the participant's tag first. Only the core's dispatch thread calls it.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ldm.config import CoreConfig
 from ldm.core.sessions import Sessions
 from ldm.core.state import Route
 from ldm.core.stats import CoreStats
-from ldm.ops.hops import Hops
+from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Transport
 from ldm.wire import topics
 from ldm.wire.batch import Outbox
@@ -54,7 +54,7 @@ class Router:
         """Other clusters' pseudonyms -> the core their input came from."""
         self._outbox = Outbox()
         self.hops: Hops | None = None
-        """Set to note when each input passes this core (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this core (`ldm.transport.hops`; `laas bench`)."""
 
     @property
     def route_count(self) -> int:

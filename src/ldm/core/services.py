@@ -8,7 +8,7 @@ withdrawal, on its core's last will, or after ``service_ttl``. With ``service_ke
 and never older than the last one taken for its service (replays). It signs the
 cluster's service list and puts it back if anyone else changes it.
 
-Only the core's worker thread calls it, except `get` and `descriptions` (a dict read).
+Only the core's dispatch thread calls it, except `get` and `descriptions` (a dict read).
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ at most every ``rekey_interval`` (`Sessions.pseudonym`), with one exception that
 that rate: a fresh grant lets one new key in early (a participant restarted under its
 client id, whose old process held the session's current key).
 
-Only the core's worker thread calls it: nothing here is locked.
+Only the core's dispatch thread calls it: nothing here is locked.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What a core holds: the services it knows, its participants' sessions and their
-pseudonyms, and the routes of other clusters' pseudonyms (records the core's worker
+pseudonyms, and the routes of other clusters' pseudonyms (records the core's dispatch thread
 thread owns; nothing else touches them)."""
 
 from __future__ import annotations

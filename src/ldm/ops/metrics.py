@@ -12,15 +12,15 @@ pseudonyms) when Prometheus scrapes. Only latencies are observed as they happen,
 one histogram, ``ldm_stage_seconds{component, name, stage}``:
 
 - a core: ``admit`` (a participant message at intake, paho's thread) and ``route``
-  (one event on the core's worker thread);
+  (one event on the core's dispatch thread);
 - a provider: ``open`` (one input: envelope, decryption, JSON), ``seal`` (one reply)
-  and ``step`` (one turn of its worker thread: an input, or a batch, open to publish).
+  and ``step`` (one turn of its dispatch thread: an input, or a batch, open to publish).
 
 Labels name a component (a core's or a service's name), a broker (``cluster`` or
 ``backbone``), an outcome, a reason or a stage: never a pseudonym, a participant id
 or anything a participant sent.
 
-/healthz answers 200 while every component's worker thread runs (else 503), /readyz
+/healthz answers 200 while every component's dispatch thread runs (else 503), /readyz
 200 once every component is connected to each of its brokers (503 before anything is
 watched); both with a JSON body naming each check.
 """
@@ -215,7 +215,7 @@ class Metrics:
         with self._lock:
             self.cores.append(core)
         core.timer = self.timer("core", core.name)
-        self.live.append(Check(f"core {core.name}: worker thread", lambda: core.alive))
+        self.live.append(Check(f"core {core.name}: dispatch thread", lambda: core.alive))
         for transport in (core.cluster, core.backbone):
             if transport is not None:
                 self.ready.append(_connected(f"core {core.name}", transport.name, transport))
@@ -225,7 +225,9 @@ class Metrics:
         with self._lock:
             self.providers.append(provider)
         provider.timer = self.timer("provider", provider.name)
-        self.live.append(Check(f"provider {provider.name}: worker thread", lambda: provider.alive))
+        self.live.append(
+            Check(f"provider {provider.name}: dispatch thread", lambda: provider.alive)
+        )
         self.ready.append(_connected(f"provider {provider.name}", "cluster", provider.transport))
 
     def health(self) -> tuple[bool, dict[str, bool]]:
@@ -317,7 +319,7 @@ def _core_metrics(cores: list[Core]) -> Iterator[Metric]:
         ),
         "queue": GaugeMetricFamily(
             "ldm_core_queue_depth",
-            "Events waiting for the core's worker thread.",
+            "Events waiting for the core's dispatch thread.",
             labels=["core"],
         ),
     }
@@ -350,7 +352,7 @@ def _provider_metrics(providers: list[Provider]) -> Iterator[Metric]:
     }
     queue = GaugeMetricFamily(
         "ldm_provider_queue_depth",
-        "Inputs waiting for the provider's worker thread.",
+        "Inputs waiting for the provider's dispatch thread.",
         labels=["service"],
     )
     ciphers = GaugeMetricFamily(

@@ -6,23 +6,23 @@ all participants through one wildcard subscription and replies to pseudonyms. It
 learns who a participant is: only a pseudonym, which changes on rotation, and a fresh
 ephemeral key with it.
 
-The handler runs on the provider's worker thread, one request at a time; it returns the
+The handler runs on the provider's dispatch thread, one request at a time; it returns the
 reply payload (or None to reply later with `Provider.reply`). A batch handler instead
 takes every input that waited together (up to ``max_batch``), decrypted, in order of
 arrival, and returns one reply (or None) for each: a service whose work is cheaper per
 item in bulk keeps up under load at no cost to a lone request.
 
 Pay per batch: input arrives one envelope per message or many in one batch from the
-core (`ldm.wire.batch`), cut apart on arrival; the worker takes everything that waited
-(up to ``max_batch``), and the replies to it leave together, one batch once the worker
-has handled it all, or a single message when there is one.
+core (`ldm.wire.batch`), cut apart on arrival; the dispatch thread takes everything that
+waited (up to ``max_batch``), and the replies to it leave together, one batch once the
+thread has handled it all, or a single message when there is one.
 
 Family notes: the providers of one family (regional workers, `ldm.client.routing`), which
 serve under one identity, may pass each other what their neighbours need (a service's
 own business: the LaaS workers share their common-error evidence). `Provider.note`
-publishes on ``ldm/svc/{family}/note/{service}``, sealed with the family's key
-(`ldm.security.crypto.family_cipher`), which no core subscribes to and no broker can
-read; each other provider of the family given ``on_note`` gets it on its worker thread,
+publishes on ``ldm/svc/{family}/note/{service}``, sealed with the region key
+(`ldm.security.crypto.region_cipher`), which no core subscribes to and no broker can
+read; each other provider of the family given ``on_note`` gets it on its dispatch thread,
 as (sender, plaintext), once, in order: a note no newer than the sender's last, older
 than ``max_age``, or that fails authentication is dropped and counted
 (``ProviderStats.dropped_notes``).
@@ -44,11 +44,11 @@ from pydantic import ValidationError
 
 from ldm.config import BrokerSettings, ProviderConfig, build
 from ldm.errors import CryptoError, SessionError
-from ldm.ops.hops import Hops
-from ldm.security.crypto import KeyPair, SessionCipher, aad, family_cipher
+from ldm.security.crypto import KeyPair, SessionCipher, aad, region_cipher
 from ldm.security.identity import SigningKey, verify
+from ldm.transport.dispatch import Dispatcher
+from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
-from ldm.transport.worker import Worker
 from ldm.wire import batch, topics
 from ldm.wire.batch import Outbox
 from ldm.wire.messages import (
@@ -152,7 +152,7 @@ class _Reply:
     """The participant key's record, which remembers the replies for retries."""
 
 
-class Provider(Worker[Event]):
+class Provider(Dispatcher[Event]):
     """A service provider. ``start()`` announces and serves; ``stop()`` withdraws."""
 
     def __init__(
@@ -173,7 +173,7 @@ class Provider(Worker[Event]):
             batch=config.max_batch,
         )
         self._outbox = Outbox()
-        """The worker's replies, sent once it handled what waited."""
+        """The dispatch thread's replies, sent once it handled what waited."""
         self.config = config
         self.key = key or KeyPair()
         if identity is None:
@@ -198,7 +198,7 @@ class Provider(Worker[Event]):
         """The signed withdrawal: the last will, and what `stop` publishes."""
         self.stats = ProviderStats()
         self.hops: Hops | None = None
-        """Set to note when each input passes this provider (`ldm.ops.hops`; `laas bench`)."""
+        """Set to note when each input passes this provider (`ldm.transport.hops`; `laas bench`)."""
         self.timer: Callable[[str, float], None] | None = None
         """Told (stage, seconds) for each input opened (``open``), each reply sealed
         (``seal``) and each turn of the handler (``step``); None: not timed
@@ -229,7 +229,7 @@ class Provider(Worker[Event]):
         if self.cluster is None:
             self.transport.subscribe(topics.SERVICES, 1)
         self.family = spec.family
-        self._family_cipher = None if spec.family is None else family_cipher(identity, spec.family)
+        self._region_key = None if spec.family is None else region_cipher(identity, spec.family)
         self._on_note = on_note
         self._note_times: dict[str, float] = {}  # sender -> its last note's time
         if spec.family is not None and on_note is not None:
@@ -262,13 +262,13 @@ class Provider(Worker[Event]):
 
     def start(self, timeout: float | None = 10.0) -> Provider:
         """Connect, announce and serve in background threads."""
-        self.start_worker()
+        self.start_dispatch()
         self.transport.start(timeout)
         return self
 
     def stop(self) -> None:
         """Withdraw the announcement and disconnect."""
-        self.stop_worker()
+        self.stop_dispatch()
         self.transport.publish_and_wait(
             topics.announce(self.name), self._goodbye, qos=1, retain=True
         )
@@ -276,7 +276,7 @@ class Provider(Worker[Event]):
 
     def kill(self) -> None:
         """Vanish without a goodbye (for fault tests): the broker publishes the last will."""
-        self.stop_worker()
+        self.stop_dispatch()
         self.transport.kill()
 
     def __enter__(self) -> Provider:
@@ -292,21 +292,36 @@ class Provider(Worker[Event]):
             raise SessionError(f"no recent input from pseudonym {pseudonym!r}; cannot reply")
         self._send(route, pseudonym, correlation_id, payload, now=True)
 
+    def seal_shared(self, plaintext: bytes, context: str) -> str:
+        """`plaintext` sealed for the family's providers alone (the region key, as a
+        note), with `context` bound as associated data: what one passes another through
+        someone it does not trust (a regional worker's hand-over, through the user)."""
+        if self._region_key is None:
+            raise SessionError(f"{self.name} is in no family: it holds no region key")
+        return self._region_key.seal(plaintext, context)
+
+    def open_shared(self, sealed: str, context: str) -> bytes:
+        """What a provider of the family sealed with `seal_shared` under `context`;
+        CryptoError if it was not, or was changed."""
+        if self._region_key is None:
+            raise SessionError(f"{self.name} is in no family: it holds no region key")
+        return self._region_key.open(sealed, context)
+
     def note(self, payload: bytes) -> None:
         """Send `payload` to the family's other providers (the module docstring)."""
-        if self.family is None or self._family_cipher is None:
+        if self.family is None or self._region_key is None:
             raise SessionError(f"{self.name} is in no family: it has nobody to send notes to")
         t = time.time()
-        sealed = self._family_cipher.seal(payload, _note_aad(self.name, t))
+        sealed = self._region_key.seal(payload, _note_aad(self.name, t))
         body = json.dumps({"t": t, "d": sealed}, separators=(",", ":")).encode()
         self.transport.publish(topics.family_note(self.family, self.name), body, 0)
         with self._count:
             self.stats.notes_sent += 1
 
     def _note(self, msg: Message) -> None:
-        """A family note (worker thread): opened, checked, given to ``on_note``."""
+        """A family note (dispatch thread): opened, checked, given to ``on_note``."""
         sender = topics.parse(msg.topic).service
-        if sender == self.name or self._on_note is None or self._family_cipher is None:
+        if sender == self.name or self._on_note is None or self._region_key is None:
             return
         try:
             body = json.loads(msg.payload)
@@ -315,7 +330,7 @@ class Provider(Worker[Event]):
                 sender, -1.0
             ):
                 raise CryptoError("a stale or replayed note")
-            plaintext = self._family_cipher.open(str(body["d"]), _note_aad(sender, t))
+            plaintext = self._region_key.open(str(body["d"]), _note_aad(sender, t))
         except (CryptoError, ValueError, KeyError, TypeError, RecursionError):
             self.stats.dropped_notes += 1
             return
@@ -375,7 +390,7 @@ class Provider(Worker[Event]):
             self._arrived[id(item)] = time.time()  # paho's thread; `open` takes it
         super().sink(item)
 
-    # --- worker thread ----------------------------------------------------------------
+    # --- dispatch thread ----------------------------------------------------------------
 
     def handle(self, item: Event) -> None:
         self.handle_many([item])
@@ -505,7 +520,7 @@ class Provider(Worker[Event]):
 
     def open(self, msg: Message) -> tuple[Request, _Reply] | None:
         """One input message -> the decrypted request and the route of its reply; None
-        (and counted) if it is oversize, invalid, stale or a replay. The worker thread's
+        (and counted) if it is oversize, invalid, stale or a replay. The dispatch thread's
         first step, apart so `laas bench --worker-only` can time it."""
         pseudonym = topics.parse(msg.topic).pseudonym
         arrived = self._arrived.pop(id(msg), None) if self.hops is not None else None
@@ -569,7 +584,7 @@ class Provider(Worker[Event]):
         payload: Mapping[str, Any],
         now: bool = False,
     ) -> None:
-        """Seal a reply and send it: into the worker's outbox, or at once (`now`: from
+        """Seal a reply and send it: into the dispatch thread's outbox, or at once (`now`: from
         another thread, `reply`)."""
         started = time.perf_counter()
         sealed = self.seal(route, correlation_id, payload)

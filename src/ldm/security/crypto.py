@@ -34,7 +34,7 @@ from ldm.errors import CryptoError
 if TYPE_CHECKING:
     from ldm.security.identity import SigningKey
 
-__all__ = ["KeyPair", "SessionCipher", "aad", "family_cipher", "input_tag"]
+__all__ = ["KeyPair", "SessionCipher", "aad", "input_tag", "region_cipher"]
 
 _NONCE = 12
 
@@ -100,14 +100,15 @@ class KeyPair:
         return SessionCipher(up, down) if initiator else SessionCipher(down, up)
 
 
-def family_cipher(identity: SigningKey, family: str) -> SessionCipher:
-    """The cipher the providers of one family share, for what they pass each other
+def region_cipher(identity: SigningKey, family: str) -> SessionCipher:
+    """The region key: the cipher the providers of one service's regions (its
+    ``family``, `ldm.wire.messages.ServiceSpec`) share, for what they pass each other
     (hand-overs through a participant, notes through their broker): the same
     ChaCha20-Poly1305 as a session's, keyed
 
         key = HKDF-SHA256(identity private key, info="ldm-family/1|" family)
 
-    Only holders of the family's identity key can read or make what it seals: not the
+    Only holders of the regions' identity key can read or make what it seals: not the
     brokers, not the cores, not the participants that carry it."""
     key = identity.derive(f"ldm-family/1|{family}".encode())
     return SessionCipher(key, key)

@@ -12,7 +12,8 @@ participant acts on. Three things are signed:
   forged on the broker changes nothing for a participant that pinned the core's key.
 
 Every signed text starts with a domain label (``ldm-service/1|`` …), so a signature
-made for one purpose is never valid for another:
+made for one purpose is never valid for another (a message's JSON made canonical by
+`ldm.wire.messages.canonical`):
 
     description  Ed25519(identity, "ldm-service/1|" + JSON of all but the signature fields)
     announcement Ed25519(identity, "ldm-announce/2|" + description.signature + "|" + repr(t)
@@ -29,10 +30,8 @@ from __future__ import annotations
 
 import base64
 import binascii
-import json
 import os
 from pathlib import Path
-from typing import Any
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes
@@ -48,7 +47,7 @@ from cryptography.hazmat.primitives.serialization import (
 
 from ldm.errors import ConfigError
 
-__all__ = ["SigningKey", "canonical", "endorse", "endorsement_text", "verify"]
+__all__ = ["SigningKey", "endorse", "endorsement_text", "verify"]
 
 
 class SigningKey:
@@ -115,8 +114,8 @@ class SigningKey:
 
     def derive(self, info: bytes) -> bytes:
         """A 32-byte secret for `info` that only holders of this key can compute:
-        HKDF-SHA256(private key, info). The providers of one family, which serve under
-        one identity, share it (`ldm.security.crypto.family_cipher`)."""
+        HKDF-SHA256(private key, info). The providers of one service's regions, which
+        serve under one identity, share it (`ldm.security.crypto.region_cipher`)."""
         raw = self._private.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
         return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(raw)
 
@@ -141,16 +140,6 @@ def verify(public: str, data: bytes, signature: str | None) -> bool:
     except (InvalidSignature, ValueError, binascii.Error):
         return False
     return True
-
-
-def canonical(label: str, body: dict[str, Any]) -> bytes:
-    """``label | JSON`` with sorted keys and no spaces: the same bytes on every side.
-
-    ``body`` is a message's ``model_dump(mode="json")``; JSON numbers round-trip
-    exactly, so a receiver that decoded the message rebuilds the signer's bytes.
-    """
-    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return f"{label}|{text}".encode()
 
 
 def endorsement_text(service: str, identity: str) -> bytes:

@@ -1,7 +1,7 @@
 """Fair intake: one FIFO per sender, served round-robin, so a busy sender delays no one.
 
 A `FairQueue` sits between the threads that receive messages (paho's) and the one
-thread that handles them (an `ldm.transport.worker.Worker`). Each item is queued under a key —
+thread that handles them (an `ldm.transport.dispatch.Dispatcher`). Each item is queued under a key —
 the LDM core uses the participant's client id — or in the urgent lane (key None).
 
 Scheduling rule (what `FairQueue.get` returns next):
@@ -40,7 +40,7 @@ _T = TypeVar("_T")
 class FairQueue(Generic[_T]):
     """Per-key FIFOs served round-robin, behind an urgent FIFO; see the module docstring.
 
-    It has the part of `queue.SimpleQueue`'s interface a worker needs: ``put``,
+    It has the part of `queue.SimpleQueue`'s interface a dispatcher needs: ``put``,
     ``get(timeout)`` (raises `queue.Empty`) and ``qsize``, plus ``offer`` with a key.
     """
 

@@ -7,7 +7,7 @@ turns paho's messages into the LDM's own `Message`.
 
 Threads: paho's network thread (started by ``loop_start``) runs every callback here.
 They never block: each one converts what it got and hands it to ``sink`` (normally
-``queue.SimpleQueue.put``); the owner's worker thread does the real work. ``publish``
+``queue.SimpleQueue.put``); the owner's dispatch thread does the real work. ``publish``
 and ``subscribe`` may be called from any thread.
 
 Many connections, one thread: give ``loop=ClientLoop()`` (or call `Transport.attach`

@@ -258,7 +258,7 @@ def _ldm_part() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
             "Family note",
             "What one provider of a family passes the others (a regional LaaS worker: its "
             "users' evidence about the common error of its areas): d sealed with the "
-            "family's key (ldm.security.crypto.family_cipher), t and the sender bound as "
+            "region key (ldm.security.crypto.region_cipher), t and the sender bound as "
             "associated data. No core reads it.",
             {
                 "type": "object",

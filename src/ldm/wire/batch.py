@@ -13,7 +13,7 @@ apart without parsing an envelope, so a core forwards ciphertext as the bytes it
 received; each envelope is then checked by whoever reads it, and a malformed line
 costs only itself.
 
-`Outbox` is the sending side: a worker adds each envelope as it handles what waited,
+`Outbox` is the sending side: a dispatch thread adds each envelope as it handles what waited,
 and flushes once it has handled all of it, so under light load nothing waits. What it
 sends to one destination always goes on the destination's batch topic, one envelope or
 many: MQTT keeps the order of the messages on one topic, not across topics, so a
@@ -70,8 +70,8 @@ class Publisher(Protocol):
 
 
 class Outbox:
-    """Envelopes held by one worker thread while it handles what waited (not thread
-    safe: one worker adds and flushes). Each destination is a publisher and a batch
+    """Envelopes held by one dispatch thread while it handles what waited (not thread
+    safe: one dispatch thread adds and flushes). Each destination is a publisher and a batch
     topic; `flush` sends each destination's envelopes in the order they were added."""
 
     def __init__(self) -> None:

@@ -7,11 +7,11 @@ All payloads are UTF-8 JSON; times are Unix seconds (float) taken by the sender.
 
 from __future__ import annotations
 
+import json
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ldm.security.identity import canonical
 from ldm.wire.rotation import RotationPolicy
 from ldm.wire.topics import NAME_PATTERN, TOKEN_PATTERN
 
@@ -29,11 +29,23 @@ __all__ = [
     "SessionNotice",
     "SessionRequest",
     "Withdrawal",
+    "canonical",
 ]
 
 _NAME = NAME_PATTERN.pattern
 _TOKEN = TOKEN_PATTERN.pattern
 _B64 = r"^[A-Za-z0-9+/=]*$"
+
+
+def canonical(label: str, body: dict[str, Any]) -> bytes:
+    """``label | JSON`` with sorted keys and no spaces: the same bytes on every side, the
+    text a signature covers (`ldm.security.identity`).
+
+    ``body`` is a message's ``model_dump(mode="json")``; JSON numbers round-trip
+    exactly, so a receiver that decoded the message rebuilds the signer's bytes.
+    """
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return f"{label}|{text}".encode()
 
 
 class _Wire(BaseModel):

@@ -6,7 +6,7 @@
     server.stop()
 
 `server` is the HTTP server, `feed` the fan-out of the worker's answered fixes to the
-pages (bounded per page, off the worker thread), `views` the JSON the page draws (the
+pages (bounded per page, off the dispatch thread), `views` the JSON the page draws (the
 map's lanes, answered fixes, common-error areas), and ``static/index.html`` the page
 itself, self-contained. The page shows pseudonyms only: the worker knows no identity.
 """

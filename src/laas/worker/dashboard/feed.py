@@ -2,7 +2,7 @@
 
 Threads, and what each may do:
 
-- the provider's worker thread calls `Feed.observe` (it is `LaasService.observer`) once
+- the provider's dispatch thread calls `Feed.observe` (it is `LaasService.observer`) once
   per batch of answered fixes. It only appends the batch, with the engine time it took
   and, at most every `areas_every` seconds, references to the common-error estimates
   (which the worker replaces whole, never changes in place), to a bounded inbox and
@@ -156,10 +156,10 @@ class Feed:
     def closed(self) -> bool:
         return self._closed.is_set()
 
-    # -- the worker thread -----------------------------------------------------------------
+    # -- the dispatch thread -----------------------------------------------------------------
 
     def observe(self, batch: Sequence[Observation]) -> None:
-        """`LaasService.observer`: hand the batch to the feed's thread (worker thread)."""
+        """`LaasService.observer`: hand the batch to the feed's thread (dispatch thread)."""
         spent = self.service.stats.engine_seconds - self._engine_seen
         self._engine_seen += spent
         areas = None

@@ -1,9 +1,9 @@
-"""The worker thread every LDM component runs its logic on.
+"""The dispatch thread every LDM component runs its logic on.
 
-paho's network thread only puts events on the worker's inbox; the worker handles them
-one at a time, so component state needs no locks, and runs ``tick`` between events.
-``stop_worker`` ends the thread before the next item, however long the backlog.
-With ``batch`` above one, the worker takes what is waiting, up to ``batch`` items, and
+paho's network thread only puts events on the dispatcher's inbox; its thread handles
+them one at a time, so component state needs no locks, and runs ``tick`` between events.
+``stop_dispatch`` ends the thread before the next item, however long the backlog.
+With ``batch`` above one, the thread takes what is waiting, up to ``batch`` items, and
 hands them to ``handle_many`` at once (a provider's batch handler, a core's outbox):
 the inbox gives them in one hand-off (`Inbox.take`), not one at a time.
 
@@ -21,7 +21,7 @@ from typing import Generic, Protocol, TypeVar
 
 from ldm.transport.mqtt import Connected
 
-__all__ = ["Inbox", "Worker"]
+__all__ = ["Dispatcher", "Inbox"]
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ _STOP = object()
 
 
 class Inbox(Protocol):
-    """Where a worker's items wait; every method is safe from any thread."""
+    """Where a dispatcher's items wait; every method is safe from any thread."""
 
     def put(self, item: object) -> None:
         """Queue an item, even past any limit (control events, the stop sentinel)."""
@@ -85,7 +85,7 @@ class _Fifo:
         return items
 
 
-class Worker(Generic[_Item]):
+class Dispatcher(Generic[_Item]):
     """A named thread that calls ``handle(item)`` per queued item and ``tick(now)``.
 
     With ``limit``, at most that many items wait: `offer` refuses what does not fit,
@@ -110,7 +110,7 @@ class Worker(Generic[_Item]):
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def put(self, item: _Item) -> None:
-        """Hand an item to the worker; safe from any thread, never blocks."""
+        """Hand an item to the dispatch thread; safe from any thread, never blocks."""
         self._queue.put(item)
 
     def offer(self, item: _Item) -> bool:
@@ -136,17 +136,17 @@ class Worker(Generic[_Item]):
 
     @property
     def alive(self) -> bool:
-        """Whether the worker thread is running (started and not stopped)."""
+        """Whether the dispatch thread is running (started and not stopped)."""
         return self._thread.is_alive()
 
-    def start_worker(self) -> None:
+    def start_dispatch(self) -> None:
         self._thread.start()
 
-    def stop_worker(self, timeout: float = 5.0) -> None:
+    def stop_dispatch(self, timeout: float = 5.0) -> None:
         """Stop before the next item (the backlog is dropped) and wait for the thread."""
         self._stopping.set()
         if self._thread.is_alive():
-            self._queue.put(_STOP)  # wakes a worker waiting on an empty queue
+            self._queue.put(_STOP)  # wakes a thread waiting on an empty queue
             if threading.current_thread() is not self._thread:
                 self._thread.join(timeout)
 

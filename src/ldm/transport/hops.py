@@ -9,10 +9,10 @@ The points, in the order an input and its reply pass them:
 
 - ``sent``: the participant sealed the input (the envelope's own ``t``, noted by the
   user core);
-- ``user_core``: the user core's worker took the input;
-- ``service_core``: the service core's worker took it from the backbone;
+- ``user_core``: the user core's dispatch thread took the input;
+- ``service_core``: the service core's dispatch thread took it from the backbone;
 - ``arrived``: it reached the provider (its MQTT client's thread);
-- ``taken``: the provider's worker took it off its queue;
+- ``taken``: the provider's dispatch thread took it off its queue;
 - ``answered``: the handler's reply was ready;
 - ``delivered``: the user core passed the reply on to the participant.
 
@@ -43,7 +43,7 @@ class Hops:
             at[c] = time.time() if t is None else t
 
     def merge(self, marks: dict[str, dict[str, float]]) -> None:
-        """Add the marks of another process's `Hops` (for example a worker's)."""
+        """Add the marks of another process's `Hops` (for example a LaaS worker's)."""
         for point, times in marks.items():
             self.marks[point].update(times)
 

@@ -16,6 +16,7 @@ from laas.errors import ConfigError, TraceError
 from laas.map.bundled import bundled_map
 from laas.map.geojson import read_geojson_file
 from laas.sim.foreign import find_roads, load_road
+from laas.sim.plan import SimulatedFix
 from laas.sim.scenario import Trace, get_scenario, simulate_with
 from laas.sim.suite import foreign_suite, get_suite, run_suite
 from laas.sim.truth import write_run
@@ -53,7 +54,7 @@ def test_a_recorded_road_reads_back_with_its_truth_and_the_oracles_common_error(
     assert np.median(miss) < 1.0
 
 
-def _true(fix):
+def _true(fix: SimulatedFix) -> tuple[float, float]:
     return fix.true_e, fix.true_n
 
 

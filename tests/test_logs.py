@@ -118,6 +118,6 @@ def test_a_bad_log_format_is_a_clear_error() -> None:
         timeout=30,
     )
     assert result.returncode == 2
-    assert "log format 'xml': use text or json" in result.stdout
+    assert "log format 'xml': use text or json" in result.stderr
     with pytest.raises(Exception, match="use text or json"):
         configure("yaml", component="test")

@@ -36,6 +36,11 @@ def test_summarise_shares_own_and_total_time(tmp_path: Path) -> None:
     assert [f.label for f in found] == ["cores-3", "worker-7"]
     text = format_profiles(found, tmp_path)
     assert "worker-7: 10 samples" in text and "loop (paho/mqtt/client.py)" in text
+    assert [e.function for e in found[1].inclusive] == [
+        "main (laas/cli.py)",
+        "<module> (laas/cli.py)",
+        "work (laas/engine/engine.py)",
+    ]
 
 
 def _can_profile() -> bool:

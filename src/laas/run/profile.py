@@ -11,7 +11,9 @@ are of the process's active time (on all its threads together).
 Per process, the entries are
     own     the share of samples where the function is the innermost frame
     total   the share of samples where it is on the stack at all (once per sample)
-and `format_profiles` prints the top entries by own time, with their total beside.
+and `format_profiles` prints the top entries by own time, with their total beside, then
+the project's own functions (``laas``, ``ldm``) by total time: where the time goes
+inclusive of what they call.
 
 py-spy reads the target's memory from outside (no code change, no slowdown of the
 target beyond the reading); it needs the right to trace the process (root, or
@@ -65,11 +67,13 @@ class Entry:
 
 @dataclass(frozen=True)
 class Profile:
-    """One process's profile: its label (``KIND-PID``), samples and top entries."""
+    """One process's profile: its label (``KIND-PID``), samples, the top entries by own
+    time, and the project's own functions (``laas``, ``ldm``) by total time."""
 
     label: str
     samples: int
     entries: list[Entry]
+    inclusive: list[Entry]
 
 
 class Recorder:
@@ -164,7 +168,14 @@ def summarise(stacks: Counter[tuple[str, ...]], label: str, top: int = 10) -> Pr
             total[frame] += count
     n = max(samples, 1)
     entries = [Entry(f, c / n, total[f] / n) for f, c in own.most_common(top)]
-    return Profile(label, samples, entries)
+    ours = Counter({f: c for f, c in total.items() if f.endswith(".py)") and _ours(f)})
+    inclusive = [Entry(f, own[f] / n, c / n) for f, c in ours.most_common(top)]
+    return Profile(label, samples, entries, inclusive)
+
+
+def _ours(frame: str) -> bool:
+    """Whether a shortened frame is the project's: in ``laas/`` or ``ldm/``."""
+    return " (laas/" in frame or " (ldm/" in frame
 
 
 def profiles(folder: Path, top: int = 10) -> list[Profile]:
@@ -187,4 +198,8 @@ def format_profiles(found: Sequence[Profile], folder: Path | None = None) -> str
         lines.append("     own  total  function")
         for e in p.entries:
             lines.append(f"    {e.own:4.0%}  {e.total:5.0%}  {e.function}")
+        if p.inclusive:
+            lines.append("     own  total  the project's own functions, by total")
+            for e in p.inclusive:
+                lines.append(f"    {e.own:4.0%}  {e.total:5.0%}  {e.function}")
     return "\n".join(lines)

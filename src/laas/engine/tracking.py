@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,6 +52,7 @@ __all__ = [
     "Track",
     "TrackUpdate",
     "kalman_steps",
+    "measurement_noise",
     "multipath_weight",
 ]
 
@@ -126,24 +128,8 @@ class Track:
         self._start(fix)
 
     def _measurement_noise(self, fix: Fix) -> np.ndarray:
-        """R: sigma_pos^2 on the position; on the velocity, speed noise along the heading
-        and across it the heading's error s sigma_h plus the speed noise again, since a GNSS
-        course over ground comes from a velocity vector whose every component carries it
-        (so a slow user's heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n'."""
-        c = self._config
-        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
-        h2 = (fix.speed * math.radians(c.sigma_heading)) ** 2
-        v2 = c.sigma_vel**2 + _MIN_VELOCITY_VAR
-        p2 = (fix.accuracy if fix.accuracy is not None else c.sigma_pos) ** 2
-        ven = h2 * n_e * n_n
-        return np.array(
-            [
-                [p2, 0.0, 0.0, 0.0],
-                [0.0, p2, 0.0, 0.0],
-                [0.0, 0.0, v2 + h2 * n_e * n_e, ven],
-                [0.0, 0.0, ven, v2 + h2 * n_n * n_n],
-            ]
-        )
+        """R of one fix (`measurement_noise`)."""
+        return measurement_noise(self._config, [fix])[0]
 
     def _start(self, fix: Fix) -> None:
         r = self._measurement_noise(fix)
@@ -254,6 +240,35 @@ class Track:
 
 
 _EYE4 = np.eye(4)
+_Q_SCALE = np.array([0.25, 0.5, 1.0])  # Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
+_Q_POWERS = np.array([4.0, 3.0, 2.0])
+_Q_PLACES = np.zeros((3, 16))  # where each of the three coefficients goes in Q, flat
+for _i in range(2):
+    _Q_PLACES[0, 5 * _i] = _Q_PLACES[1, 4 * _i + _i + 2] = _Q_PLACES[1, 4 * (_i + 2) + _i] = 1.0
+    _Q_PLACES[2, 5 * (_i + 2)] = 1.0
+
+
+def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
+    """R of each fix, (B, 4, 4): sigma_pos^2 on the position (the receiver's own accuracy
+    if it gives one); on the velocity, speed noise along the heading and across it the
+    heading's error s sigma_h plus the speed noise again, since a GNSS course over ground
+    comes from a velocity vector whose every component carries it (so a slow user's
+    heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n',  n = (cos h, -sin h)."""
+    sigma_h = math.radians(config.sigma_heading)
+    rows = []
+    for fix in fixes:
+        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
+        h2 = (fix.speed * sigma_h) ** 2
+        p2 = (fix.accuracy if fix.accuracy is not None else config.sigma_pos) ** 2
+        rows.append((p2, h2 * n_e * n_e, h2 * n_e * n_n, h2 * n_n * n_n))
+    v = np.array(rows)
+    v2 = config.sigma_vel**2 + _MIN_VELOCITY_VAR
+    r = np.zeros((len(rows), 4, 4))
+    r[:, 0, 0] = r[:, 1, 1] = v[:, 0]
+    r[:, 2, 2] = v2 + v[:, 1]
+    r[:, 2, 3] = r[:, 3, 2] = v[:, 2]
+    r[:, 3, 3] = v2 + v[:, 3]
+    return r
 
 
 def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
@@ -272,27 +287,24 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     if not tracks:
         return
     config = tracks[0]._config
-    b = len(tracks)
     x = np.array([tr._x for tr in tracks])
     p = np.array([tr._P for tr in tracks])
     dts = np.array([f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)])
-    f = np.empty((b, 4, 4))
-    f[:] = _EYE4
-    f[:, 0, 2] = f[:, 1, 3] = dts
-    q = config.sigma_accel**2
-    qm = np.zeros((b, 4, 4))
-    qm[:, 0, 0] = qm[:, 1, 1] = q * dts**4 / 4.0
-    qm[:, 0, 2] = qm[:, 1, 3] = qm[:, 2, 0] = qm[:, 3, 1] = q * dts**3 / 2.0
-    qm[:, 2, 2] = qm[:, 3, 3] = q * dts**2
-    x = np.matmul(f, x[:, :, None])[:, :, 0]
-    p = f @ p @ f.transpose(0, 2, 1) + qm
+    # F x and F P F', F = [[I, dt I], [0, I]]: the velocity's rows, then its columns,
+    # added dt times to the position's (what the products with F's ones and zeros do)
+    dt = dts[:, None]
+    x[:, :2] += dt * x[:, 2:]
+    p[:, :2, :] += dt[:, :, None] * p[:, 2:, :]
+    p[:, :, :2] += dt[:, None, :] * p[:, :, 2:]
+    # + Q: its three coefficients q dt^4 / 4, q dt^3 / 2, q dt^2 placed by `_Q_PLACES`
+    p += ((config.sigma_accel**2 * _Q_SCALE) * dt**_Q_POWERS @ _Q_PLACES).reshape(-1, 4, 4)
     z = np.array(
         [
             [fx.e, fx.n, fx.speed * math.sin(fx.heading), fx.speed * math.cos(fx.heading)]
             for fx in fixes
         ]
     )
-    r = np.array([tr._measurement_noise(fx) for tr, fx in zip(tracks, fixes, strict=True)])
+    r = measurement_noise(config, fixes)
     if _weighs_multipath(config):
         share = config.track_multipath
         y = (z[:, :2] - x[:, :2]).tolist()

@@ -129,7 +129,8 @@ class Track:
 
     def _measurement_noise(self, fix: Fix) -> np.ndarray:
         """R of one fix (`measurement_noise`)."""
-        return measurement_noise(self._config, [fix])[0]
+        r: np.ndarray = measurement_noise(self._config, [fix])[0]
+        return r
 
     def _start(self, fix: Fix) -> None:
         r = self._measurement_noise(fix)

@@ -306,14 +306,15 @@ class CommonError:
         u-grid then has its moments of b in O(U):  E_g[b] = sum_k g_k M1_k / sum_k g_k M0_k,
         and the same for the second moments."""
         i0, i1, j0, j1 = self._win
-        be = np.broadcast_to(self._axis[i0:i1, None], self._w.shape)
-        bn = np.broadcast_to(self._axis[None, j0:j1], self._w.shape)
+        be, bn = self._axis[i0:i1, None], self._axis[None, j0:j1]
         idx = self._cells(normal).ravel()
         w = self._w
-        terms = (w, w * be, w * bn, w * be * be, w * be * bn, w * bn * bn)
-        return np.stack(
-            [np.bincount(idx, weights=t.ravel(), minlength=self.u.size) for t in terms], axis=1
-        )
+        we, wn = w * be, w * bn
+        terms = (w, we, wn, we * be, we * bn, wn * bn)
+        out = np.empty((self.u.size, 6))
+        for k, t in enumerate(terms):
+            out[:, k] = np.bincount(idx, weights=t.ravel(), minlength=self.u.size)
+        return out
 
     @property
     def cell_var(self) -> float:

@@ -220,10 +220,20 @@ class CommonError:
             min(n, j0 + int(cols[-1]) + 3),
         )
         if new != self._win:
-            outside = np.full_like(self._log, -2.0 * _DROP)
             inside = (slice(new[0], new[1]), slice(new[2], new[3]))
-            outside[inside] = self._log[inside]
-            self._log = outside
+            if self.cap is None:
+                # Outside the window every cell already holds -2 _DROP (each change of
+                # log p outside it also grows the window over it), so only the old
+                # window's cells are reset, not the whole grid: a grid's worth of
+                # writes a batch saved. (The robust posterior's S changes log p outside
+                # the window, `_add_e`: there the grid is made afresh.)
+                kept = self._log[inside].copy()
+                self._log[i0:i1, j0:j1] = -2.0 * _DROP
+                self._log[inside] = kept
+            else:
+                outside = np.full_like(self._log, -2.0 * _DROP)
+                outside[inside] = self._log[inside]
+                self._log = outside
             self._win = new
 
     def predict(self, t: float) -> None:

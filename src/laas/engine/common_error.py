@@ -203,8 +203,8 @@ class CommonError:
         cee = float(we @ (ae - me) ** 2)
         cnn = float(wn @ (an - mn) ** 2)
         cen = float((ae - me) @ w @ (an - mn))
-        cov = np.array([[cee, cen], [cen, cnn]]) + np.eye(2) * self._res**2 / 12.0
-        return np.array([me, mn]), cov
+        own = self._res**2 / 12.0
+        return np.array([me, mn]), np.array([[cee + own, cen], [cen, cnn + own]])
 
     def _shrink(self) -> None:
         """Drop the window's edges that hold no mass; keep two cells of margin."""

@@ -25,20 +25,21 @@ def test_summarise_shares_own_and_total_time(tmp_path: Path) -> None:
     (tmp_path / "cores-3.txt").write_text(RAW)
     stacks = read_profile(tmp_path / "worker-7.txt")
     assert sum(stacks.values()) == 10
-    p = summarise(stacks, "worker-7", top=2)
-    assert [e.function for e in p.entries] == [
+    p = summarise(stacks, "worker-7", top=3)
+    assert [e.function for e in p.entries] == [  # ties by name
         "work (laas/engine/engine.py)",
+        "loop (paho/mqtt/client.py)",
         "main (laas/cli.py)",
     ]
     assert p.entries[0].own == pytest.approx(0.6) and p.entries[0].total == pytest.approx(0.6)
-    assert p.entries[1].own == pytest.approx(0.2) and p.entries[1].total == pytest.approx(0.8)
+    assert p.entries[2].own == pytest.approx(0.2) and p.entries[2].total == pytest.approx(0.8)
     found = profiles(tmp_path)
     assert [f.label for f in found] == ["cores-3", "worker-7"]
     text = format_profiles(found, tmp_path)
     assert "worker-7: 10 samples" in text and "loop (paho/mqtt/client.py)" in text
     assert [e.function for e in found[1].inclusive] == [
-        "main (laas/cli.py)",
         "<module> (laas/cli.py)",
+        "main (laas/cli.py)",
         "work (laas/engine/engine.py)",
     ]
 

@@ -164,13 +164,18 @@ def summarise(stacks: Counter[tuple[str, ...]], label: str, top: int = 10) -> Pr
         if not frames:
             continue
         own[frames[-1]] += count
-        for frame in set(frames):
+        for frame in dict.fromkeys(frames):  # once per sample, in stack order
             total[frame] += count
     n = max(samples, 1)
-    entries = [Entry(f, c / n, total[f] / n) for f, c in own.most_common(top)]
+    entries = [Entry(f, c / n, total[f] / n) for f, c in _top(own, top)]
     ours = Counter({f: c for f, c in total.items() if f.endswith(".py)") and _ours(f)})
-    inclusive = [Entry(f, own[f] / n, c / n) for f, c in ours.most_common(top)]
+    inclusive = [Entry(f, own[f] / n, c / n) for f, c in _top(ours, top)]
     return Profile(label, samples, entries, inclusive)
+
+
+def _top(counts: Counter[str], top: int) -> list[tuple[str, int]]:
+    """The `top` largest counts, ties by name (the same order every run)."""
+    return sorted(counts.items(), key=lambda item: (-item[1], item[0]))[:top]
 
 
 def _ours(frame: str) -> bool:

@@ -292,6 +292,7 @@ def _cmd_bench(a: argparse.Namespace) -> int:
         spread=a.spread,
         privacy=not a.no_privacy,
         workers=a.workers,
+        profile=a.profile,
     )
 
     def progress(line: str) -> None:
@@ -678,6 +679,15 @@ def _add_demo_and_bench(sub: Any) -> None:
         type=int,
         default=1,
         help="worker processes, each serving a region of the map (default 1)",
+    )
+    p.add_argument(
+        "--profile",
+        metavar="DIR",
+        help=(
+            "record where each process (cores, worker, participants; not the brokers) "
+            "spends its CPU over the load with py-spy: raw profiles into DIR, the top "
+            "entries per process printed after the report"
+        ),
     )
     p.add_argument("--map", default="messe-hamburg", help="with --worker-only: bundled map to roam")
     p.add_argument(

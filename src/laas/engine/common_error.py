@@ -113,6 +113,8 @@ _U_STEP = 0.1  # m: cell of the 1-D grid of u = n . b, well below any lane-evide
 # enters before the user's next fix; the recorded answers agree to 1e-12 m with it, and
 # not with 2 m (tests/reference_answers).
 _SPAN_MARGIN = 50
+_CELL_WINDOWS = 4  # windows whose u-cells per normal are kept (`CommonError._cells`)
+_CELL_NORMALS = 256  # normals kept per window
 _DROP = 40.0  # cells this far below the maximum in log p hold no mass worth keeping
 _BLUR_STEP = 0.05  # blur once the walk's variance since the last blur is 2 * this * res^2
 _EVIDENCE_KEEP = 60.0  # s: a user silent this long has left; its evidence joins `base`
@@ -164,9 +166,13 @@ class CommonError:
         self._prior_log = self._log.copy() if self.memory is not None else None
         self._win = (0, n, 0, n)
         self.u = UGrid(half * math.sqrt(2.0), _U_STEP)
-        # the u-grid cells of n . b over the window, per normal n, while the window stays
-        self._cells_win: tuple[int, int, int, int] = (0, 0, 0, 0)
-        self._cells_of: dict[tuple[float, float], tuple[np.ndarray, tuple[int, int]]] = {}
+        # the u-grid cells of n . b over the window, per normal n, for the last few
+        # windows: a batch's blur grows the window by a cell and its update shrinks it
+        # again, so a settled area goes back and forth between the same few windows
+        self._cells_by_win: dict[
+            tuple[int, int, int, int],
+            dict[tuple[float, float], tuple[np.ndarray, tuple[int, int]]],
+        ] = {}
         self._drift_var = drift**2
         self._pending_var = 0.0
         self.t: float | None = None
@@ -203,8 +209,8 @@ class CommonError:
         cee = float(we @ (ae - me) ** 2)
         cnn = float(wn @ (an - mn) ** 2)
         cen = float((ae - me) @ w @ (an - mn))
-        cov = np.array([[cee, cen], [cen, cnn]]) + np.eye(2) * self._res**2 / 12.0
-        return np.array([me, mn]), cov
+        own = self._res**2 / 12.0
+        return np.array([me, mn]), np.array([[cee + own, cen], [cen, cnn + own]])
 
     def _shrink(self) -> None:
         """Drop the window's edges that hold no mass; keep two cells of margin."""
@@ -220,10 +226,20 @@ class CommonError:
             min(n, j0 + int(cols[-1]) + 3),
         )
         if new != self._win:
-            outside = np.full_like(self._log, -2.0 * _DROP)
             inside = (slice(new[0], new[1]), slice(new[2], new[3]))
-            outside[inside] = self._log[inside]
-            self._log = outside
+            if self.cap is None:
+                # Outside the window every cell already holds -2 _DROP (each change of
+                # log p outside it also grows the window over it), so only the old
+                # window's cells are reset, not the whole grid: a grid's worth of
+                # writes a batch saved. (The robust posterior's S changes log p outside
+                # the window, `_add_e`: there the grid is made afresh.)
+                kept = self._log[inside].copy()
+                self._log[i0:i1, j0:j1] = -2.0 * _DROP
+                self._log[inside] = kept
+            else:
+                outside = np.full_like(self._log, -2.0 * _DROP)
+                outside[inside] = self._log[inside]
+                self._log = outside
             self._win = new
 
     def predict(self, t: float) -> None:
@@ -289,15 +305,20 @@ class CommonError:
 
     def _cells_and_span(self, normal: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
         """`_cells`, and the cells [lo, hi) they take."""
-        if self._cells_win != self._win:
-            self._cells_win, self._cells_of = self._win, {}
+        cells_of = self._cells_by_win.get(self._win)
+        if cells_of is None:
+            if len(self._cells_by_win) >= _CELL_WINDOWS:
+                del self._cells_by_win[next(iter(self._cells_by_win))]  # the oldest
+            cells_of = self._cells_by_win[self._win] = {}
+        elif len(cells_of) >= _CELL_NORMALS:  # users on curves: a normal each
+            cells_of.clear()
         key = (float(normal[0]), float(normal[1]))
-        found = self._cells_of.get(key)
+        found = cells_of.get(key)
         if found is None:
             i0, i1, j0, j1 = self._win
             proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
             idx = self.u.index(proj)
-            found = self._cells_of[key] = (idx, (int(idx.min()), int(idx.max()) + 1))
+            found = cells_of[key] = (idx, (int(idx.min()), int(idx.max()) + 1))
         return found
 
     def u_moments(self, normal: np.ndarray) -> np.ndarray:
@@ -306,14 +327,15 @@ class CommonError:
         u-grid then has its moments of b in O(U):  E_g[b] = sum_k g_k M1_k / sum_k g_k M0_k,
         and the same for the second moments."""
         i0, i1, j0, j1 = self._win
-        be = np.broadcast_to(self._axis[i0:i1, None], self._w.shape)
-        bn = np.broadcast_to(self._axis[None, j0:j1], self._w.shape)
+        be, bn = self._axis[i0:i1, None], self._axis[None, j0:j1]
         idx = self._cells(normal).ravel()
         w = self._w
-        terms = (w, w * be, w * bn, w * be * be, w * be * bn, w * bn * bn)
-        return np.stack(
-            [np.bincount(idx, weights=t.ravel(), minlength=self.u.size) for t in terms], axis=1
-        )
+        we, wn = w * be, w * bn
+        terms = (w, we, wn, we * be, we * bn, wn * bn)
+        out = np.empty((self.u.size, 6))
+        for k, t in enumerate(terms):
+            out[:, k] = np.bincount(idx, weights=t.ravel(), minlength=self.u.size)
+        return out
 
     @property
     def cell_var(self) -> float:

@@ -410,7 +410,8 @@ class CooperativeLaneFilter(LaneFilter):
                 moments[key] = area.u_moments(u.normal)
             stacked[k] = moments[key][cell[k]]
         marginal, lane, b, cov, held = lanes_and_conditionals(stacked, alpha, area.cell_var)
-        b[~held], cov[~held] = area.b, area.P
+        if not held.all():
+            b[~held], cov[~held] = area.b, area.P
         by_segment: dict[str, list[int]] = {}
         for k, u in enumerate(users):
             by_segment.setdefault(u.segment.id, []).append(k)

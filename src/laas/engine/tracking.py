@@ -26,16 +26,19 @@ reflection and never come back. Paper mode, and pi = 0, is the plain filter.
 
 The filter is filterpy's `KalmanFilter` written out for this model (predict with
 F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
-few numpy calls: filterpy's general predict and update cost about 150 us a fix, most of
-it bookkeeping, this about 20 us. `kalman_steps` does the same step for a batch of
-tracks at once, as stacked (B, 4, 4) arrays. `tests/test_tracking.py` holds both to
-filterpy's own `KalmanFilter` and `Q_discrete_white_noise`, which stay the reference.
+few numpy calls on stacked (B, 4) states and (B, 4, 4) covariances: `kalman_steps` steps
+a batch of tracks at once, and a single track (`Track.update`) is a batch of one. There
+is no other copy of the step. filterpy's general predict and update cost about 150 us a
+fix, most of it bookkeeping, a batch of one here about 30 us. `tests/test_tracking.py`
+holds it to filterpy's own `KalmanFilter` and `Q_discrete_white_noise`, which stay the
+reference.
 """
 
 from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +52,7 @@ __all__ = [
     "Track",
     "TrackUpdate",
     "kalman_steps",
+    "measurement_noise",
     "multipath_weight",
 ]
 
@@ -64,33 +68,10 @@ seconds (in the development families 2-6 s on average, exponentially distributed
 _AGREES = 0.1  # a disagreement begins with a fix of rho > 1/2 and ends with one of rho < this
 
 
-def multipath_weight(s: np.ndarray, y: np.ndarray, share: float) -> np.ndarray:
-    """rho of the module docstring for stacked position innovations y (B, 2) with
-    covariances S (B, 2, 2): the posterior probability that each fix is in multipath."""
-    wide = s + MULTIPATH_SIGMA**2 * np.eye(2)
-
-    def log_density(c: np.ndarray) -> np.ndarray:
-        det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
-        # y' C^-1 y for 2x2 C, written out
-        m2 = (
-            c[:, 1, 1] * y[:, 0] ** 2
-            - 2.0 * c[:, 0, 1] * y[:, 0] * y[:, 1]
-            + c[:, 0, 0] * y[:, 1] ** 2
-        ) / det
-        out: np.ndarray = -0.5 * m2 - 0.5 * np.log(det)
-        return out
-
-    narrow = math.log(1.0 - share) + log_density(s)
-    broad = math.log(share) + log_density(wide)
-    out: np.ndarray = 1.0 / (1.0 + np.exp(np.clip(narrow - broad, -700.0, 700.0)))
-    return out
-
-
-def _multipath_weight_one(
-    a: float, b: float, c: float, y0: float, y1: float, share: float
-) -> float:
-    """`multipath_weight` of one fix in floats (S = [[a, b], [b, c]], y = (y0, y1)): numpy's
-    call overhead on 2 x 2 arrays would double a track's step."""
+def multipath_weight(a: float, b: float, c: float, y0: float, y1: float, share: float) -> float:
+    """rho of the module docstring for one fix: the posterior probability that it is in
+    multipath, given its position's innovation y = (y0, y1) and S = [[a, b], [b, c]].
+    In floats: numpy's call overhead on 2 x 2 arrays would double a track's step."""
     wide = MULTIPATH_SIGMA**2
 
     def log_density(a: float, c: float) -> float:
@@ -147,24 +128,9 @@ class Track:
         self._start(fix)
 
     def _measurement_noise(self, fix: Fix) -> np.ndarray:
-        """R: sigma_pos^2 on the position; on the velocity, speed noise along the heading
-        and across it the heading's error s sigma_h plus the speed noise again, since a GNSS
-        course over ground comes from a velocity vector whose every component carries it
-        (so a slow user's heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n'."""
-        c = self._config
-        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
-        h2 = (fix.speed * math.radians(c.sigma_heading)) ** 2
-        v2 = c.sigma_vel**2 + _MIN_VELOCITY_VAR
-        p2 = (fix.accuracy if fix.accuracy is not None else c.sigma_pos) ** 2
-        ven = h2 * n_e * n_n
-        return np.array(
-            [
-                [p2, 0.0, 0.0, 0.0],
-                [0.0, p2, 0.0, 0.0],
-                [0.0, 0.0, v2 + h2 * n_e * n_e, ven],
-                [0.0, 0.0, ven, v2 + h2 * n_n * n_n],
-            ]
-        )
+        """R of one fix (`measurement_noise`)."""
+        r: np.ndarray = measurement_noise(self._config, [fix])[0]
+        return r
 
     def _start(self, fix: Fix) -> None:
         r = self._measurement_noise(fix)
@@ -190,28 +156,8 @@ class Track:
         """Fold one fix into the track; stale fixes are refused, long gaps restart it."""
         outcome = self.admit(fix)
         if outcome is TrackUpdate.ACCEPTED and self._config.kalman:
-            dt = fix.t - self.t
-            self._predict(dt)
-            self._step_update(fix)
-            self._accepted(fix, dt)
+            kalman_steps([self], [fix])  # a batch of one
         return outcome
-
-    def _step_update(self, fix: Fix) -> None:
-        """The update of one predicted step, multipath weighed in default mode."""
-        z = np.array([fix.e, fix.n, *fix.velocity])
-        r = self._measurement_noise(fix)
-        if _weighs_multipath(self._config):
-            p = self._P
-            rho = _multipath_weight_one(
-                float(p[0, 0] + r[0, 0]),
-                float(p[0, 1] + r[0, 1]),
-                float(p[1, 1] + r[1, 1]),
-                float(z[0] - self._x[0]),
-                float(z[1] - self._x[1]),
-                self._config.track_multipath,
-            )
-            self._weigh(rho, fix.t, p, r)
-        self._update(z, r)
 
     def _weigh(self, rho: float, t: float, p: np.ndarray, r: np.ndarray) -> None:
         """In place on this step's predicted P and its R: the position's variance in R
@@ -254,27 +200,6 @@ class Track:
         self.dt = dt
         self.last_fix = fix
 
-    def _predict(self, dt: float) -> None:
-        """x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white acceleration
-        of variance q gives (filterpy's Q_discrete_white_noise(dim=2, block_size=2))
-        Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]."""
-        q = self._config.sigma_accel**2
-        a, b, c = q * dt**4 / 4.0, q * dt**3 / 2.0, q * dt**2
-        f = np.array([[1.0, 0.0, dt, 0.0], [0.0, 1.0, 0.0, dt], [0, 0, 1, 0], [0, 0, 0, 1]])
-        qm = np.array([[a, 0.0, b, 0.0], [0.0, a, 0.0, b], [b, 0.0, c, 0.0], [0.0, b, 0.0, c]])
-        self._x = f @ self._x
-        self._P = f @ self._P @ f.T + qm
-
-    def _update(self, z: np.ndarray, r: np.ndarray) -> None:
-        """H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),
-        P = (I - K) P (I - K)' + K R K'  (Joseph's form, which stays symmetric and
-        positive; filterpy's update)."""
-        p = self._P
-        k = np.linalg.solve(p + r, p).T  # P S^-1 = (S^-1 P)', P and S symmetric
-        self._x = self._x + k @ (z - self._x)
-        i_k = np.eye(4) - k
-        self._P = i_k @ p @ i_k.T + k @ r @ k.T
-
     @property
     def position(self) -> np.ndarray:
         """(e, n) at the time of the last fix, m."""
@@ -315,48 +240,83 @@ class Track:
         return self.position + self.velocity * (t - self.t)
 
 
+_EYE4 = np.eye(4)
+_Q_SCALE = np.array([0.25, 0.5, 1.0])  # Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
+_Q_POWERS = np.array([4.0, 3.0, 2.0])
+_Q_PLACES = np.zeros((3, 16))  # where each of the three coefficients goes in Q, flat
+for _i in range(2):
+    _Q_PLACES[0, 5 * _i] = _Q_PLACES[1, 4 * _i + _i + 2] = _Q_PLACES[1, 4 * (_i + 2) + _i] = 1.0
+    _Q_PLACES[2, 5 * (_i + 2)] = 1.0
+
+
+def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
+    """R of each fix, (B, 4, 4): sigma_pos^2 on the position (the receiver's own accuracy
+    if it gives one); on the velocity, speed noise along the heading and across it the
+    heading's error s sigma_h plus the speed noise again, since a GNSS course over ground
+    comes from a velocity vector whose every component carries it (so a slow user's
+    heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n',  n = (cos h, -sin h)."""
+    sigma_h = math.radians(config.sigma_heading)
+    rows = []
+    for fix in fixes:
+        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
+        h2 = (fix.speed * sigma_h) ** 2
+        p2 = (fix.accuracy if fix.accuracy is not None else config.sigma_pos) ** 2
+        rows.append((p2, h2 * n_e * n_e, h2 * n_e * n_n, h2 * n_n * n_n))
+    v = np.array(rows)
+    v2 = config.sigma_vel**2 + _MIN_VELOCITY_VAR
+    r = np.zeros((len(rows), 4, 4))
+    r[:, 0, 0] = r[:, 1, 1] = v[:, 0]
+    r[:, 2, 2] = v2 + v[:, 1]
+    r[:, 2, 3] = r[:, 3, 2] = v[:, 2]
+    r[:, 3, 3] = v2 + v[:, 3]
+    return r
+
+
 def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     """`Track.update`'s Kalman step for fix i of track i, all at once (each fix admitted
-    by its track with `Track.admit`, one fix per track). The same equations as
-    `Track._predict` and `Track._update`, on stacked (B, 4) states and (B, 4, 4)
-    covariances."""
+    by its track with `Track.admit`, one fix per track), on stacked (B, 4) states and
+    (B, 4, 4) covariances; a single track is a batch of one.
+
+    predict   x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white
+              acceleration of variance q gives (filterpy's Q_discrete_white_noise(dim=2,
+              block_size=2))  Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
+    weigh     in default mode, rho of each fix and `Track._weigh` (module docstring)
+    update    H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),
+              P = (I - K) P (I - K)' + K R K'  (Joseph's form, which stays symmetric and
+              positive; filterpy's update)
+    """
     if not tracks:
         return
-    if len(tracks) == 1:  # no stacking for one
-        track, fix = tracks[0], fixes[0]
-        dt = fix.t - track.t
-        track._predict(dt)
-        track._step_update(fix)
-        track._accepted(fix, dt)
-        return
     config = tracks[0]._config
-    b = len(tracks)
-    x = np.stack([tr._x for tr in tracks])
-    p = np.stack([tr._P for tr in tracks])
+    x = np.array([tr._x for tr in tracks])
+    p = np.array([tr._P for tr in tracks])
     dts = np.array([f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)])
-    # Predict: x = F x, P = F P F' + Q (Track._predict).
-    f = np.broadcast_to(np.eye(4), (b, 4, 4)).copy()
-    f[:, 0, 2] = f[:, 1, 3] = dts
-    q = config.sigma_accel**2
-    qa, qb, qc = q * dts**4 / 4.0, q * dts**3 / 2.0, q * dts**2
-    qm = np.zeros((b, 4, 4))
-    qm[:, 0, 0] = qm[:, 1, 1] = qa
-    qm[:, 0, 2] = qm[:, 1, 3] = qm[:, 2, 0] = qm[:, 3, 1] = qb
-    qm[:, 2, 2] = qm[:, 3, 3] = qc
-    x = np.einsum("bij,bj->bi", f, x)
-    p = f @ p @ f.transpose(0, 2, 1) + qm
-    # Update (Track._update): K = P S^-1, x += K (z - x), Joseph's form of P.
-    z = np.array([[fx.e, fx.n, *fx.velocity] for fx in fixes])
-    r = np.stack([tr._measurement_noise(fx) for tr, fx in zip(tracks, fixes, strict=True)])
-    if _weighs_multipath(config):  # Track._step_update, the weights of all at once
-        rho = multipath_weight(
-            p[:, :2, :2] + r[:, :2, :2], z[:, :2] - x[:, :2], config.track_multipath
-        )
+    # F x and F P F', F = [[I, dt I], [0, I]]: the velocity's rows, then its columns,
+    # added dt times to the position's (what the products with F's ones and zeros do)
+    dt = dts[:, None]
+    x[:, :2] += dt * x[:, 2:]
+    p[:, :2, :] += dt[:, :, None] * p[:, 2:, :]
+    p[:, :, :2] += dt[:, None, :] * p[:, :, 2:]
+    # + Q: its three coefficients q dt^4 / 4, q dt^3 / 2, q dt^2 placed by `_Q_PLACES`
+    p += ((config.sigma_accel**2 * _Q_SCALE) * dt**_Q_POWERS @ _Q_PLACES).reshape(-1, 4, 4)
+    z = np.array(
+        [
+            [fx.e, fx.n, fx.speed * math.sin(fx.heading), fx.speed * math.cos(fx.heading)]
+            for fx in fixes
+        ]
+    )
+    r = measurement_noise(config, fixes)
+    if _weighs_multipath(config):
+        share = config.track_multipath
+        y = (z[:, :2] - x[:, :2]).tolist()
+        s = (p[:, :2, :2] + r[:, :2, :2]).tolist()
         for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
-            track._weigh(float(rho[i]), fix.t, p[i], r[i])
-    k = np.linalg.solve(p + r, p).transpose(0, 2, 1)
-    x = x + np.einsum("bij,bj->bi", k, z - x)
-    i_k = np.eye(4) - k
+            (s00, s01), (_, s11) = s[i]
+            rho = multipath_weight(s00, s01, s11, y[i][0], y[i][1], share)
+            track._weigh(rho, fix.t, p[i], r[i])
+    k = np.linalg.solve(p + r, p).transpose(0, 2, 1)  # P S^-1 = (S^-1 P)', P, S symmetric
+    x = x + np.matmul(k, (z - x)[:, :, None])[:, :, 0]
+    i_k = _EYE4 - k
     p = i_k @ p @ i_k.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
     for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
         track._x = x[i]

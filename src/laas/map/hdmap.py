@@ -505,6 +505,8 @@ class HdMap:
         out: list[Segment | None] = [None] * len(pts)
         if not len(pts):
             return out
+        if len(pts) == 1:  # the tree's array query costs more than one point's own
+            return [self.locate(float(pts[0, 0]), float(pts[0, 1]), max_distance)]
         geoms = shapely.points(pts)
         inp, hit = self._tree.query(geoms, predicate="intersects")
         order = np.lexsort((hit, inp))

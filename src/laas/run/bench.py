@@ -63,6 +63,7 @@ from laas.run.participants import (
     run_participants,
     submit_on_time,
 )
+from laas.run.profile import Profile, Recorder, format_profiles, profiles
 from laas.sim.scenario import (
     EPOCH_MS,
     ErrorModel,
@@ -116,6 +117,7 @@ class BenchConfig:
     spread: bool = False  # fixes spread over the second, not all on the whole second
     privacy: bool = True  # the two Hamburg runs after the load (the cost of privacy)
     workers: int = 1  # worker processes, each serving a region of the map (laas.worker.regions)
+    profile: str | None = None  # a folder: py-spy profiles of each process over the load
 
     def __post_init__(self) -> None:
         if self.participants < 1:
@@ -198,6 +200,9 @@ class BenchReport:
     loop), ``worker``, ``brokers`` (all three); empty without /proc."""
     privacy: list[PrivacyRun] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
+    profiles: list[Profile] = field(default_factory=list)
+    """With `BenchConfig.profile`: each process's top entries over the load
+    (`laas.run.profile`), brokers excluded."""
 
     @property
     def share_answered(self) -> float:
@@ -465,19 +470,22 @@ def _children(pid: int) -> list[int]:
     return found
 
 
-def _processes(echo: int | None) -> dict[int, str]:
+def _processes(echo: int | None, participants: Sequence[int] = ()) -> dict[int, str]:
     """The processes of the system under test that outlive the load, by pid -> kind:
     this one (``cores``), the brokers (Mosquitto, or the embedded broker in a process)
     and the worker processes (any other child but the bare echo, which is the floor's,
-    not the LDM's). The participant processes, which exit once done, count their own
-    CPU time."""
+    not the LDM's, and multiprocessing's resource tracker). The participant processes,
+    which exit once done, count their own CPU time: they are not counted here (they are
+    this process's children too, and were once counted as the worker's)."""
     kinds = {os.getpid(): "cores"}
     for pid in _children(os.getpid()):
-        if pid in kinds or pid == echo:
+        if pid in kinds or pid == echo or pid in participants:
             continue
         try:
             command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
         except OSError:
+            continue
+        if any(b"resource_tracker" in part for part in command):
             continue
         broker = Path(command[0].decode(errors="replace")).name == "mosquitto" or (
             b"ldm" in command and b"broker" in command
@@ -558,6 +566,7 @@ def _load(
     go, abort, echo_ready, echo_stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     start_at = ctx.Value("d", 0.0)
     shards = _shards(trace, processes, deployment.user_url, config, deployment.trust)
+    recorder: Recorder | None = None
     echo = ctx.Process(
         target=_echo_process,
         args=(deployment.user_url, shards[0].tag, echo_ready, echo_stop),
@@ -600,7 +609,10 @@ def _load(
         go.set()
         say(f"  sending for {config.duration:g} s ...")
         cpu0 = time.process_time()
-        kinds = _processes(echo.pid)
+        kinds = _processes(echo.pid, [w.pid for w in workers if w.pid is not None])
+        if config.profile is not None:
+            recorder = Recorder(Path(config.profile), config.duration)
+            recorder.start({**kinds, **{w.pid: "participants" for w in workers if w.pid}})
         by_kind0 = _cpu_by_kind(kinds) if kinds and Path("/proc/self/stat").exists() else {}
         sent = {s.index: 0 for s in shards}
         answered = dict(sent)
@@ -634,6 +646,9 @@ def _load(
             # Once each participant process reported done, before any of them exits.
             by_kind = {k: v - by_kind0[k] for k, v in _cpu_by_kind(kinds).items()}
             by_kind["participants"] = -1.0  # their own clocks, below
+        if recorder is not None:
+            for label in recorder.stop():
+                say(f"  profile of {label} missing: see {config.profile}/{label}.log")
     finally:
         abort.set()
         go.set()
@@ -722,6 +737,8 @@ def run_bench(config: BenchConfig, progress: Progress | None = None) -> BenchRep
     report.worker_answered = deployment.worker_answered
     report.cpu_worker = deployment.worker_cpu
     report.stages = stage_latencies(hops)
+    if config.profile is not None:
+        report.profiles = profiles(Path(config.profile))
     for period in (config.rotation_period, ROTATION_OFF) if config.privacy else ():
         label = "off" if period == ROTATION_OFF else f"every {period:g} s"
         say(f"  privacy: Hamburg scenario, rotation {label}, {config.privacy_speedup:g}x ...")
@@ -786,6 +803,8 @@ def format_report(r: BenchReport) -> str:
     lines += _privacy_lines(r)
     for error in r.errors[:5]:
         lines.append(f"  e.g. {error}")
+    if r.profiles:
+        lines += ["", format_profiles(r.profiles)]
     return "\n".join(lines)
 
 
@@ -793,8 +812,13 @@ def run_loads(config: BenchConfig, progress: Progress | None = None) -> list[Ben
     """The load on the whole second, then spread over it (`BenchConfig.spread` is
     ignored), each on a deployment of its own; the privacy runs (if any) after the
     second only."""
-    aligned = run_bench(replace(config, spread=False, privacy=False), progress)
-    return [aligned, run_bench(replace(config, spread=True), progress)]
+    folder = config.profile
+    aligned = replace(config, spread=False, privacy=False)
+    spread = replace(config, spread=True)
+    if folder is not None:  # each load's profiles in a folder of its own
+        aligned = replace(aligned, profile=str(Path(folder) / "aligned"))
+        spread = replace(spread, profile=str(Path(folder) / "spread"))
+    return [run_bench(aligned, progress), run_bench(spread, progress)]
 
 
 def format_loads(reports: Sequence[BenchReport]) -> str:

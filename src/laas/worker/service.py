@@ -38,7 +38,8 @@ worker, `ldm.RoutedSession`) has it opened (`ldm.Provider.open_shared`) and take
 is counted (``handover_refused``) and the fix answered as a new track's. Every
 ``share_every`` seconds the worker sends its users' evidence about the common error of
 its areas to the other regional workers (`Provider.note`), and takes what the others
-send for the areas its coverage holds (`Engine.import_areas`).
+send for the areas its coverage holds (`Engine.import_areas`); a region of one has no
+neighbour, and neither records its evidence nor sends notes.
 
 A pseudonym's state (its track, its clock anchor) is forgotten ``track_timeout``
 seconds of the worker's wall clock after its last accepted fix, whatever its timestamps
@@ -222,7 +223,7 @@ class LaasService:
         self.notes: Callable[[bytes], None] | None = None
         """Sends the area evidence to the other regional workers (`Provider.note`); None:
         not shared."""
-        if region is not None:
+        if region is not None and self._neighbours():
             self.engine.record_areas()
         self.config = worker or WorkerConfig()
         self.stats = WorkerStats()
@@ -364,7 +365,7 @@ class LaasService:
     def _share(self, t: float) -> None:
         """Every share_every s of the fixes' time (a simulation sped up shares as
         often as live): this worker's own area evidence to the other regional workers."""
-        if self.notes is None or self.region is None or t < self._next_share:
+        if self.notes is None or not self._neighbours() or t < self._next_share:
             return
         self._next_share = t + self.config.share_every
         states = self.engine.export_areas(self._reach())
@@ -373,6 +374,10 @@ class LaasService:
                 self.notes(areas_to_bytes(states))
             except Exception:
                 log.exception("the area evidence was not sent; it is lost to the neighbours")
+
+    def _neighbours(self) -> bool:
+        """Whether this worker's region has neighbours to share area evidence with."""
+        return self.region is not None and self.region.count > 1
 
     def take_note(self, sender: str, payload: bytes) -> None:
         """A sibling's area evidence (`Provider`'s ``on_note``, the dispatch thread)."""

@@ -10,7 +10,9 @@ Threads, and what each may do:
 - the feed's thread (``laas-dashboard-feed``) encodes each batch once as a ``batch``
   event, the areas as an ``areas`` event, and every `stats_every` seconds a ``stats``
   event (rates and engine times from `WorkerStats`), and puts each event into every
-  client's queue.
+  client's queue. With no client connected it only keeps each pseudonym's last answered
+  fix and the latest areas as they came, and makes the page's views of them when a
+  client asks (`state`): no views and no encoding for nobody.
 - each client (an HTTP handler thread) takes events from its own queue and writes them
   to its socket. The queue holds at most `queue` events; when it is full the oldest is
   dropped and counted, so a slow browser loses old positions and never slows the
@@ -119,8 +121,10 @@ class Feed:
         self._closed = threading.Event()
         self._clients: list[Client] = []
         self._lock = threading.Lock()  # clients, and the state a new client is sent
-        self._latest: OrderedDict[str, tuple[float, dict[str, Any]]] = OrderedDict()
-        self._areas: list[dict[str, Any]] = []
+        # each pseudonym's last answered fix, and the areas, as they came (views made
+        # when a client needs them)
+        self._latest: OrderedDict[str, tuple[float, Observation]] = OrderedDict()
+        self._areas: list[AreaSnapshot] = []
         self._stats: dict[str, Any] = {}
         self._samples: deque[tuple[float, int, float, int]] = deque()
         self._batches = 0
@@ -201,8 +205,8 @@ class Feed:
     def _state(self) -> dict[str, Any]:
         return {
             "forget_after": self.forget_after,
-            "users": [view for _, view in self._latest.values()],
-            "areas": self._areas,
+            "users": [observation_view(seen) for _, seen in self._latest.values()],
+            "areas": area_views(self.service.engine.map, self._areas),
             "stats": self._stats,
         }
 
@@ -230,22 +234,25 @@ class Feed:
         spent: float,
         areas: list[AreaSnapshot] | None,
     ) -> None:
-        views = [observation_view(seen) for seen in batch]
         now = self._clock()
         self._batches += 1
         self._batch_ms.append(1000.0 * spent)
-        if views:  # none: every fix of the batch was stale
-            with self._lock:
-                for view in views:
-                    self._latest[view["pseudonym"]] = (now, view)
-                    self._latest.move_to_end(view["pseudonym"])
+        with self._lock:
+            for seen in batch:
+                self._latest[seen.pseudonym] = (now, seen)
+                self._latest.move_to_end(seen.pseudonym)
+            if areas is not None:
+                self._areas = areas
+            watched = bool(self._clients)
+        if not watched:
+            return
+        if batch:  # none: every fix of the batch was stale
+            views = [observation_view(seen) for seen in batch]
             wall_ms, engine_ms = round(wall * 1000), round(1000.0 * spent, 3)
             event = {"time": wall_ms, "engine_ms": engine_ms, "fixes": views}
             self._publish(sse("batch", event))
         if areas is not None:
             shown = area_views(self.service.engine.map, areas)
-            with self._lock:
-                self._areas = shown
             self._publish(sse("areas", {"areas": shown}))
 
     def _tick(self, now: float) -> None:

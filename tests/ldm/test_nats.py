@@ -367,24 +367,28 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
 
         sent, killed_at = _send_killing_node_0(cluster, people, sessions, 6.0, watch)
 
-        # Every input is answered, however late (max_age is 20 s here): by the service,
-        # or by the user core's explicit refusal. None vanishes (RequestTimeout).
-        assert wait_for(lambda: all(item.future.done() for item in sent), 45)
+        # Every input is answered (by the service, or by the user core's explicit
+        # refusal while it saw the service withdrawn: see docs/brokers.md). None vanishes:
+        # a lost one would fail only by RequestTimeout, 2 x max_age + 1 = 41 s after it
+        # was sent, so the wait outlasts that.
+        assert wait_for(lambda: all(item.future.done() for item in sent), 60)
         answered = [x for x in sent if x.future.exception() is None]
         refused = [x for x in sent if x.future.exception() is not None]
         kinds = sorted({type(x.future.exception()).__name__ for x in refused})
-        # Not settled (docs/brokers.md): when the user core briefly loses sight of the
-        # service, inputs in flight to it can be dropped as unroutable on the service side
-        # and time out. Without that window, none may time out: a broker that lost a
-        # QoS 1 input would show as a timeout in a run with no refusal.
         timeouts = [x for x in refused if isinstance(x.future.exception(), RequestTimeout)]
-        window = [x for x in refused if isinstance(x.future.exception(), ServiceNotFound)]
-        assert not timeouts or window, kinds
+        assert not timeouts, f"{len(timeouts)} of {len(sent)} inputs lost (timed out): {kinds}"
+        assert all(isinstance(x.future.exception(), ServiceNotFound) for x in refused), kinds
         for item in answered:
             assert item.future.result() == {"echo": {"who": item.who, "i": item.i}}
         seen = {(r.payload["who"], r.payload["i"]) for r in d.echo.requests}
         assert {(x.who, x.i) for x in answered} <= seen
         assert len(refused) <= len(sent) // 4, kinds  # a refusal window, if any, is short
+        # Each answer came within 2 x max_age of its input: every hop drops an input, and
+        # then its reply, older than max_age. A later one could only be an input sent
+        # again after its session was lost (the 41 s answer was one, re-sent when
+        # another input's timeout re-opened the session).
+        worst = max(item.answered[0] - item.at for item in answered)
+        assert worst <= 2 * PATIENT["max_age"], f"an input answered only after {worst:.1f} s"
 
         assert cluster.node_of(people[0].transport) != 0 and people[0].transport.connected
         assert cluster.node_of(d.provider.transport) != 0 and d.provider.transport.connected
@@ -395,18 +399,17 @@ def test_killing_a_node_while_traffic_flows_loses_no_qos1_input(cluster: NatsClu
         # six after issue 25 needed more than 15 s; the cause is not yet known)
         assert wait_for(has_service(newcomer, "echo"), 40)
 
-        worst = max(item.answered[0] - item.at for item in answered)
         reconnect = {name: f"{f.result(1) - killed_at:.2f} s" for name, f in back.items()}
         print(
-            f"\nNATS failover: {len(sent)} inputs at QoS 1, node 0 killed; lost 0, refused "
-            f"by the user core {len(refused)} {kinds}; on another node after {reconnect}; slowest "
-            f"reply {worst:.2f} s; duplicates dropped by the provider "
-            f"{d.provider.stats.dropped_replay}, answered again "
+            f"\nNATS failover: {len(sent)} inputs at QoS 1, node 0 killed; lost "
+            f"{len(timeouts)}, refused by the user core {len(refused)} {kinds}; on another "
+            f"node after {reconnect}; slowest reply {worst:.2f} s; duplicates dropped by the "
+            f"provider {d.provider.stats.dropped_replay}, answered again "
             f"{d.provider.stats.answered_again}"
         )
-        # How soon answers flow again is printed, not asserted: a timing is a benchmark's
-        # (docs/brokers.md has the figures). In 1 of 4 runs after issue 25 one input was
-        # answered only after 41 s (2 x max_age + 1): why is not yet known.
+        # How soon answers flow again is printed (the figures docs/brokers.md quotes) and
+        # bounded only by 2 x max_age (above): the seconds of a leader election are
+        # NATS's, and a loaded machine adds to them.
     finally:
         d.close()
 
@@ -501,7 +504,10 @@ def test_killing_a_node_with_data_at_qos0_and_retries(cluster: NatsCluster) -> N
             f"{d.provider.stats.requests}"
         )
         # Nothing lost silently: every input answered, or failed with an LdmError that
-        # says why (a participant whose node died waits for JetStream's new leaders).
-        assert all(isinstance(x.future.exception(), LdmError | None) for x in sent), kinds
+        # says why (a participant whose node died waits for JetStream's new leaders), never
+        # by RequestTimeout, which is what an input lost on the way comes to.
+        errors = [x.future.exception() for x in sent]
+        assert not any(isinstance(e, RequestTimeout) for e in errors), kinds
+        assert all(e is None or isinstance(e, LdmError) for e in errors), kinds
     finally:
         d.close()

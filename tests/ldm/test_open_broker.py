@@ -223,24 +223,41 @@ def test_a_forged_list_is_not_parsed_before_its_signature(d: HostileDeployment) 
     assert d.listed(alice)
 
 
-def test_retained_junk_is_cleared_as_it_arrives(d: HostileDeployment) -> None:
+def test_retained_junk_is_cleared_as_it_arrives() -> None:
     """A participant publishes 300 retained 32 KiB messages on topics of its own that
-    are no LDM topic: the core clears each as it arrives, not at its next sweep (5 s),
-    so a fresh subscriber finds none of them 1 s after the last."""
-    junk = b"j" * 32 * 1024
-    for i in range(300):
-        d.attacker.publish(f"ldm/p/mallory/up/junk/{i}", junk, retain=True, qos=0)
-    d.attacker.fence(d.witness)
-    time.sleep(1.0)
-    found: list[str] = []
-    probe = Recorder(d.account(d.user, PROBE), "junk-probe", filters=("ldm/p/mallory/up/junk/#",))
-    probe.start()
-    try:
-        time.sleep(0.5)
-        found = [m.topic for m in probe.messages() if m.payload]
-    finally:
-        probe.stop()
-    assert len(found) == 0, f"{len(found)} junk messages still retained"
+    are no LDM topic: the core clears each as it arrives, not at a sweep (none comes
+    here: retain_sweep is an hour), so a fresh subscriber finds none of them.
+
+    A live subscriber sees each junk message (the positive control: it was there) and
+    then its clearing (an empty retained publish); the fresh subscriber's check ends at
+    a message published after it subscribed, which the broker delivers after anything
+    retained."""
+    need_mosquitto()
+    junk_topics = "ldm/p/mallory/up/junk/#"
+    with HostileDeployment("open", core={"retain_sweep": 3600.0}) as d:
+        live = Recorder(d.account(d.user, PROBE), "junk-live", filters=(junk_topics,))
+        live.start()
+        try:
+            junk = b"j" * 32 * 1024
+            for i in range(300):
+                d.attacker.publish(f"ldm/p/mallory/up/junk/{i}", junk, retain=True, qos=0)
+
+            def seen(payload: bytes) -> set[str]:
+                return {m.topic for m in live.messages(junk_topics) if m.payload == payload}
+
+            assert wait_for(lambda: len(seen(junk)) == 300, 30), len(seen(junk))
+            assert wait_for(lambda: len(seen(b"")) == 300, 30), len(seen(b""))
+        finally:
+            live.stop()
+        fresh = Recorder(d.account(d.user, PROBE), "junk-probe", filters=(junk_topics,))
+        fresh.start()
+        try:
+            d.attacker.publish("ldm/p/mallory/up/junk/fence", b"fence", qos=1)
+            assert wait_for(lambda: fresh.messages(junk_topics), 10), "no fence"
+            found = [m.topic for m in fresh.messages(junk_topics) if m.payload == junk]
+        finally:
+            fresh.stop()
+        assert found == [], f"{len(found)} junk messages still retained"
 
 
 def test_an_older_grant_never_replaces_a_newer_key(d: HostileDeployment) -> None:

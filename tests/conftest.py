@@ -50,3 +50,12 @@ def hamburg_map():  # -> HdMap (imported here, so this stays an append to the fi
     from laas.map.geojson import read_geojson_file
 
     return read_geojson_file(bundled_map("messe-hamburg"))
+
+
+@pytest.fixture(scope="session")
+def ci_suite():  # -> tests.ci_suite.CiSuite
+    """The `ci` suite, answered once per session (tests/test_accuracy.py scores it,
+    tests/test_same_answers.py takes its recorded cases' batched answers from it)."""
+    from tests.ci_suite import ci_suite
+
+    return ci_suite()

@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import pytest
 
-from laas.sim.suite import Summary, get_suite, run_suite, summarize
+from laas.sim.suite import Summary, summarize
+from tests.ci_suite import CiSuite
+
+# answered once per session with tests/test_same_answers.py (one pytest-xdist worker)
+pytestmark = pytest.mark.xdist_group("ci_suite")
 
 # What `laas evaluate --suite ci` printed when these were set (stop 33: the common error's
 # evidence fades over evidence_memory = 30 s, the calibration refitted on all of dev):
@@ -31,8 +35,8 @@ CROSS_2 = 0.93
 
 
 @pytest.fixture(scope="module")
-def overall() -> dict[float, Summary]:
-    rows = run_suite(get_suite("ci"), workers=2)
+def overall(ci_suite: CiSuite) -> dict[float, Summary]:
+    rows = ci_suite.rows
     assert all(m.error is None for r in rows for m in r.methods.values())
     return {s.sigma_pos: s for s in summarize(rows) if s.family == "all"}
 

@@ -4,7 +4,10 @@ thresholds were set.
 
 The thresholds sit a little below the figures `laas evaluate --suite ci` printed then (in
 the comments), so that a regression fails here and a change of the model that moves them
-is a decision, recorded by moving them. The held-out suite is never run here.
+is a decision, recorded by moving them. These are in-sample checks: the `ci` suite is
+dev seeds, which the calibration was fitted on, so they guard against regressions and
+are not the claims. The claims (README, docs/evaluation.md) come from the held-out
+suite (`laas evaluate --suite heldout`), which is never run here.
 """
 
 from __future__ import annotations
@@ -29,8 +32,8 @@ BELOW_PAPER = 3
 # 40 dev seeds the calibration leaves 0.003 and 0.007); 1 + 0 of 48 runs with an AED
 # above the raw fixes'; errors across the road within twice accuracy_cross 0.98 and 0.98.
 WRONG_90 = 0.016
-ECE = 0.03
-WORSE_THAN_RAW = 3
+ECE = 0.025
+WORSE_THAN_RAW = 2
 CROSS_2 = 0.93
 
 

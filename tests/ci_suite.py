@@ -6,15 +6,22 @@ family at sigma_pos 1, which are recorded cases (`tests/reference_answers`): the
 case, trace and engine configuration, so they are taken from here instead of answered
 again. Each run is answered as `laas.sim.suite.run_case` answers it (the same
 answerers, in the same order), keeping those answers as arrays.
+
+The test command runs the test files on two processes (pytest-xdist, `--dist loadfile`),
+so the two files may be in different ones: the first to ask answers the suite under a
+file lock and leaves it in the run's temporary directory, and the other loads it.
 """
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import os
+import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -66,9 +73,29 @@ def _job(job: tuple[str, int, float, bool]) -> tuple[SuiteRow, dict[str, np.ndar
     return row, kept
 
 
+def recorded_runs() -> set[str]:
+    """The recorded cases that are runs of the suite (their batched answers are kept)."""
+    recorded = set(case_names())
+    return {f"{f}/{s}" for f, s, sp in get_suite("ci").jobs() if sp == 1.0} & recorded
+
+
+def ci_suite(cache: Path | None = None, workers: int = 2) -> CiSuite:
+    """Every run of the `ci` suite, answered once per process, and once per test run
+    when `cache` (a file in a directory the run's processes share) is given."""
+    if cache is None:
+        return _answered(workers)
+    with open(cache.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # the other process waits here, then loads
+        if cache.exists():
+            loaded: CiSuite = pickle.loads(cache.read_bytes())
+            return loaded
+        suite = _answered(workers)
+        cache.write_bytes(pickle.dumps(suite))
+        return suite
+
+
 @functools.cache
-def ci_suite(workers: int = 2) -> CiSuite:
-    """Every run of the `ci` suite on `workers` processes, once per process."""
+def _answered(workers: int) -> CiSuite:
     recorded = set(case_names())
     jobs = [(f, s, sp, sp == 1.0 and f"{f}/{s}" in recorded) for f, s, sp in get_suite("ci").jobs()]
     with ProcessPoolExecutor(max_workers=min(workers, os.cpu_count() or 1)) as pool:

@@ -17,9 +17,6 @@ import pytest
 from laas.sim.suite import Summary, summarize
 from tests.ci_suite import CiSuite
 
-# answered once per session with tests/test_same_answers.py (one pytest-xdist worker)
-pytestmark = pytest.mark.xdist_group("ci_suite")
-
 # What `laas evaluate --suite ci` printed when these were set (stop 33: the common error's
 # evidence fades over evidence_memory = 30 s, the calibration refitted on all of dev):
 # default mode's median lane accuracy 0.918 at sigma_pos 1 and 0.853 at 2.5; 1 + 1 of 48

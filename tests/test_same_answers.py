@@ -29,6 +29,7 @@ them again: `.venv/bin/python -m tests.reference_answers --record`.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -38,7 +39,7 @@ import numpy as np
 import pytest
 
 from laas.sim.score import answer_trace, score
-from tests.ci_suite import CiSuite
+from tests.ci_suite import CiSuite, recorded_runs
 from tests.reference_answers import (
     TOLERANCE_M,
     arrays,
@@ -49,9 +50,6 @@ from tests.reference_answers import (
 )
 
 _NAMES = sorted(load_record())
-
-# answered in one pytest-xdist worker with tests/test_accuracy.py, whose ci suite it shares
-pytestmark = pytest.mark.xdist_group("ci_suite")
 
 
 @dataclass(frozen=True)
@@ -67,61 +65,78 @@ class Answered:
     n: int
 
 
-Shared = tuple[dict[str, np.ndarray], float, float]
-"""A ci suite run's batched answers, lane accuracy and mean error (default mode)."""
-
-
-def answer_case(name: str, shared: Shared | None = None) -> Answered:
-    """Build one recorded case and answer it one at a time and in batches (unless the
-    ci suite's batched answers are given)."""
+def answer_case(name: str, batched: bool = True) -> Answered:
+    """Build one recorded case and answer it one at a time and, unless `batched` is
+    False (the ci suite has them: `with_batched`), in batches."""
     case = build(name)
     one = answer_trace(case.hdmap, case.trace, case.config, max_batch=1)
     s1 = score(case.hdmap, case.trace, one)
-    if shared is None:
-        many = answer_trace(case.hdmap, case.trace, case.config)
-        s2 = score(case.hdmap, case.trace, many)
-        shared = (arrays(case.hdmap, many), s2.accuracy, s2.aed)
-    batched, accuracy, aed = shared
+    many: dict[str, np.ndarray] = {}
+    s2 = (float("nan"), float("nan"))
+    if batched:
+        answers = answer_trace(case.hdmap, case.trace, case.config)
+        scored = score(case.hdmap, case.trace, answers)
+        many, s2 = arrays(case.hdmap, answers), (scored.accuracy, scored.aed)
     return Answered(
         name,
         case.config.mode,
         arrays(case.hdmap, one),
-        batched,
-        (s1.accuracy, accuracy),
-        (s1.aed, aed),
+        many,
+        (s1.accuracy, s2[0]),
+        (s1.aed, s2[1]),
         len(one),
     )
 
 
-def _from_ci_suite(suite: CiSuite) -> dict[str, Shared]:
-    out = {}
-    for row in suite.rows:
-        name = f"{row.family}/{row.seed}"
-        if row.sigma_pos == 1.0 and name in suite.batched:
-            m = row.methods["default"]
-            out[name] = (suite.batched[name], m.accuracy, m.aed)
-    return out
+def with_batched(r: Answered, suite: CiSuite) -> Answered:
+    """`r` with default mode's batched answers and scores of its ci suite run."""
+    row = next(
+        row for row in suite.rows if f"{row.family}/{row.seed}" == r.name and row.sigma_pos == 1.0
+    )
+    m = row.methods["default"]
+    return dataclasses.replace(
+        r,
+        batched=suite.batched[r.name],
+        accuracy=(r.accuracy[0], m.accuracy),
+        aed=(r.aed[0], m.aed),
+    )
+
+
+@dataclass
+class Cases:
+    """The selected cases being answered; the random-road ones' batched answers come
+    from the ci suite when it is answered in this run (`shared`)."""
+
+    futures: dict[str, Future[Answered]]
+    shared: bool
+
+    def get(self, name: str, request: pytest.FixtureRequest) -> Answered:
+        r = self.futures[name].result()
+        if not r.batched:
+            r = with_batched(r, request.getfixturevalue("ci_suite"))
+        return r
 
 
 @pytest.fixture(scope="module")
-def answered(request: pytest.FixtureRequest) -> Iterator[dict[str, Future[Answered]]]:
+def answered(request: pytest.FixtureRequest) -> Iterator[Cases]:
     """The cases the selected tests need, submitted at once to two processes; a test
-    waits for its own. With tests/test_accuracy.py in the session, the random-road
-    cases' batched answers come from its ci suite (answered first, or here)."""
+    waits for its own. With tests/test_accuracy.py in the run, the random-road cases'
+    batched answers come from its ci suite (answered meanwhile, in this process or in
+    another: tests/ci_suite.py), and only their answers one at a time are made here."""
     selected = [i for i in request.session.items if i.path == request.path]
     names = {i.callspec.params["name"] for i in selected if hasattr(i, "callspec")}
     if any(i.name == "test_all_cases_in_batches_as_good" for i in selected):
         names = set(_NAMES)
-    shared: dict[str, Shared] = {}
-    if any(i.path.name == "test_accuracy.py" for i in request.session.items):
-        shared = _from_ci_suite(request.getfixturevalue("ci_suite"))
+    shared = any(i.path.name == "test_accuracy.py" for i in request.session.items)
+    in_suite = recorded_runs() if shared else set()
     pool = ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn"))
     try:
-        yield {
-            name: pool.submit(answer_case, name, shared.get(name))
+        futures = {
+            name: pool.submit(answer_case, name, name not in in_suite)
             for name in _NAMES
             if name in names
         }
+        yield Cases(futures, shared)
     finally:
         pool.shutdown(cancel_futures=True)
 
@@ -149,9 +164,9 @@ def test_every_case_has_its_record() -> None:
 
 @pytest.mark.parametrize("name", _NAMES)
 def test_a_case_one_at_a_time_and_in_batches(
-    name: str, answered: dict[str, Future[Answered]]
+    name: str, answered: Cases, request: pytest.FixtureRequest
 ) -> None:
-    r = answered[name].result()
+    r = answered.get(name, request)
     agree = _check(r)
     if r.mode == "paper":
         return
@@ -162,8 +177,8 @@ def test_a_case_one_at_a_time_and_in_batches(
     assert aed2 <= 1.05 * aed1, f"{name}: mean error {aed1:.3f} m one at a time, {aed2:.3f} batched"
 
 
-def test_all_cases_in_batches_as_good(answered: dict[str, Future[Answered]]) -> None:
-    done = [r for r in (answered[name].result() for name in _NAMES) if r.mode == "default"]
+def test_all_cases_in_batches_as_good(answered: Cases, request: pytest.FixtureRequest) -> None:
+    done = [r for r in (answered.get(name, request) for name in _NAMES) if r.mode == "default"]
     share = float(np.concatenate([_check(r) for r in done]).mean())
     assert share >= 0.99, f"only {share:.4f} of batched answers on the lane of one at a time"
     n = np.array([r.n for r in done], dtype=float)

@@ -86,7 +86,7 @@ FIGURES = (
         "nats-failover-qos1",
         "docs/brokers.md",
         "| slowest reply of an input sent around the failure | 5.2–11.9 s",
-        (*PYTEST, "tests/ldm/test_nats.py", "-k", "loses_no_qos1"),
+        (*PYTEST, "tests/ldm/test_nats.py", "-k", "killing_a_node_while_qos1"),
         r"lost (\d+), refused by the user core (\d+).*?slowest reply ([\d.]+ s)",
         quick=False,
     ),

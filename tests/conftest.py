@@ -50,3 +50,18 @@ def hamburg_map():  # -> HdMap (imported here, so this stays an append to the fi
     from laas.map.geojson import read_geojson_file
 
     return read_geojson_file(bundled_map("messe-hamburg"))
+
+
+@pytest.fixture(scope="session")
+def ci_suite(tmp_path_factory: pytest.TempPathFactory):  # -> tests.ci_suite.CiSuite
+    """The `ci` suite, answered once per test run (tests/test_accuracy.py scores it,
+    tests/test_same_answers.py takes its recorded cases' batched answers from it), also
+    when pytest-xdist runs the two files in different processes: they share the run's
+    temporary directory (a worker's is a directory in it)."""
+    import os
+
+    from tests.ci_suite import ci_suite
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    return ci_suite(shared / "ci-suite.pickle")

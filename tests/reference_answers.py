@@ -1,30 +1,35 @@
-"""The engine's answers recorded before the speed work, to test that it changes none.
+"""The engine's answers recorded, to test that speed work changes none.
 
-Speed work (issue 13) must keep every answer: the same lane, the position within 1e-6 m.
-This module names the recorded cases, answers them with the engine as it is now, and
-writes or compares the record in `tests/data/reference-answers.npz`:
+Speed work (issue 13) must keep every answer: the same lane, the position and both
+accuracies (`accuracy_cross`, `accuracy_along`) within 1e-6 m. This module names the
+recorded cases, answers them with the engine as it is now, one fix at a time
+(`Engine.process`) and in batches as the live worker takes them (`laas.engine.batches`,
+`Engine.process_many`), and writes or compares the record in
+`tests/data/reference-answers.npz`:
 
     .venv/bin/python -m tests.reference_answers --record   # after a deliberate change
     .venv/bin/python -m tests.reference_answers            # compare, print the worst
 
-Cases: both bundled scenarios in both modes, the first `FAMILY_SEEDS` of the `ci` suite's
-dev seeds of each random-road family at sigma_pos 1 (default mode), and two dev seeds of
-each real-map family. Recording again is a decision that the answers *should* change (a
-model change), never a way to make a speed change pass.
+(`--workers N` answers the cases on N processes; about 2 minutes on two.) Cases: both
+bundled scenarios in both modes, the first `FAMILY_SEEDS` of the `ci` suite's dev seeds
+of each random-road family at sigma_pos 1 (default mode), and two dev seeds of each
+real-map family. Recording again is a decision that the answers *should* change (a
+model change), never a way to make a speed change pass: say so in the commit.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import sys
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from laas.config import EngineConfig, Mode
+from laas.engine.batches import MAX_BATCH
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
@@ -36,9 +41,9 @@ from laas.sim.suite import engine_config, get_suite, sigma_vel_for
 RECORD = Path(__file__).parent / "data" / "reference-answers.npz"
 TOLERANCE_M = 1e-6
 # Dev seeds per random-road family (16 cases of four families): a change of the engine's
-# answers shows in most cases, and `tests/test_same_answers.py` answers each case twice,
-# so more would cost the test command its 15 minutes (`tests/test_accuracy.py` scores the
-# whole ci suite).
+# answers shows in most cases, and `tests/test_same_answers.py` answers each case one at
+# a time (their batched answers come from the ci suite that `tests/test_accuracy.py`
+# scores: `tests/ci_suite.py`), so more would cost the test command time.
 FAMILY_SEEDS = 4
 
 
@@ -115,50 +120,70 @@ def arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, n
     return {"xy": xy, "acc": acc, "lane": lane.astype(str)}
 
 
-def compare(case: Case, record: dict[str, np.ndarray], max_batch: int = 1) -> tuple[int, float]:
-    """(answers on another lane, largest position difference in m) against the record."""
-    now = answer_arrays(case, max_batch)
+PATHS = ("one", "batched")
+"""How a record's answers were given to the engine: one fix at a time, or in batches
+as the live worker takes them (`answer_trace`'s default `max_batch`)."""
+_FIELDS = ("xy", "acc", "lane")
+
+
+def answer_both(case: Case) -> dict[str, dict[str, np.ndarray]]:
+    """The case's answers one at a time and in batches (`PATHS`)."""
+    return {"one": answer_arrays(case, 1), "batched": answer_arrays(case, MAX_BATCH)}
+
+
+def differences(now: dict[str, np.ndarray], record: dict[str, np.ndarray]) -> tuple[int, float]:
+    """(answers on another lane, largest difference of a position or an accuracy in m)
+    of `now` against `record`; inf when they are not answers to the same fixes."""
     if now["lane"].shape != record["lane"].shape:  # another trace: the case itself changed
         return len(now["lane"]), float("inf")
     other = int(np.sum(now["lane"] != record["lane"]))
-    diff = np.hypot(*(now["xy"] - record["xy"]).T)
-    acc = np.abs(now["acc"] - record["acc"])
-    worst = max(float(np.nanmax(diff, initial=0.0)), float(np.nanmax(acc, initial=0.0)))
-    if not np.array_equal(np.isnan(now["xy"]), np.isnan(record["xy"])):
-        worst = float("inf")
+    worst = 0.0
+    for field in ("xy", "acc"):
+        if not np.array_equal(np.isnan(now[field]), np.isnan(record[field])):
+            return other, float("inf")
+        diff = np.abs(now[field] - record[field])
+        worst = max(worst, float(np.nanmax(diff, initial=0.0)))
     return other, worst
 
 
-def load_record() -> dict[str, dict[str, np.ndarray]]:
+def load_record() -> dict[str, dict[str, dict[str, np.ndarray]]]:
+    """Case name -> path ("one", "batched") -> field ("xy", "acc", "lane") -> array."""
     with np.load(RECORD) as data:
-        names = sorted({k.rsplit("|", 1)[0] for k in data.files})
-        return {n: {f: data[f"{n}|{f}"] for f in ("xy", "acc", "lane")} for n in names}
+        names = sorted({k.split("|", 1)[0] for k in data.files})
+        return {n: {p: {f: data[f"{n}|{p}|{f}"] for f in _FIELDS} for p in PATHS} for n in names}
+
+
+def _answer(name: str) -> tuple[str, dict[str, dict[str, np.ndarray]]]:
+    return name, answer_both(build(name))
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--record", action="store_true", help="write the record anew")
-    parser.add_argument(
-        "--max-batch", type=int, default=1, help="fixes per engine call at most (1: one at a time)"
-    )
+    parser.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     a = parser.parse_args()
+    names = case_names()
+    with ProcessPoolExecutor(max_workers=max(1, a.workers)) as pool:
+        answered = dict(pool.map(_answer, names))
     if a.record:
         flat = {}
-        for case in cases():
-            for field, values in answer_arrays(case).items():
-                flat[f"{case.name}|{field}"] = values
-            print(f"recorded {case.name}: {len(case.trace.fixes)} answers", file=sys.stderr)
+        for name in names:
+            for path, fields in answered[name].items():
+                for field, values in fields.items():
+                    flat[f"{name}|{path}|{field}"] = values
+            print(f"recorded {name}: {len(answered[name]['one']['lane'])} answers x 2")
         RECORD.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(RECORD, **flat)  # type: ignore[arg-type]
         return 0
     record = load_record()
     bad = 0
-    for case in cases():
-        other, worst = compare(case, record[case.name], a.max_batch)
-        ok = other == 0 and worst <= TOLERANCE_M
-        bad += not ok
-        verdict = "ok" if ok else "DIFF"
-        print(f"{case.name:28s} other lanes {other:4d}  worst {worst:.2e} m  {verdict}")
+    for name in names:
+        for path in PATHS:
+            other, worst = differences(answered[name][path], record[name][path])
+            ok = other == 0 and worst <= TOLERANCE_M
+            bad += not ok
+            verdict = "ok" if ok else "DIFF"
+            print(f"{name:28s} {path:8s} other lanes {other:4d}  worst {worst:.2e} m  {verdict}")
     return 1 if bad else 0
 
 

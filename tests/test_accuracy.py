@@ -4,14 +4,18 @@ thresholds were set.
 
 The thresholds sit a little below the figures `laas evaluate --suite ci` printed then (in
 the comments), so that a regression fails here and a change of the model that moves them
-is a decision, recorded by moving them. The held-out suite is never run here.
+is a decision, recorded by moving them. These are in-sample checks: the `ci` suite is
+dev seeds, which the calibration was fitted on, so they guard against regressions and
+are not the claims. The claims (README, docs/evaluation.md) come from the held-out
+suite (`laas evaluate --suite heldout`), which is never run here.
 """
 
 from __future__ import annotations
 
 import pytest
 
-from laas.sim.suite import Summary, get_suite, run_suite, summarize
+from laas.sim.suite import Summary, summarize
+from tests.ci_suite import CiSuite
 
 # What `laas evaluate --suite ci` printed when these were set (stop 33: the common error's
 # evidence fades over evidence_memory = 30 s, the calibration refitted on all of dev):
@@ -25,14 +29,14 @@ BELOW_PAPER = 3
 # 40 dev seeds the calibration leaves 0.003 and 0.007); 1 + 0 of 48 runs with an AED
 # above the raw fixes'; errors across the road within twice accuracy_cross 0.98 and 0.98.
 WRONG_90 = 0.016
-ECE = 0.03
-WORSE_THAN_RAW = 3
+ECE = 0.025
+WORSE_THAN_RAW = 2
 CROSS_2 = 0.93
 
 
 @pytest.fixture(scope="module")
-def overall() -> dict[float, Summary]:
-    rows = run_suite(get_suite("ci"), workers=2)
+def overall(ci_suite: CiSuite) -> dict[float, Summary]:
+    rows = ci_suite.rows
     assert all(m.error is None for r in rows for m in r.methods.values())
     return {s.sigma_pos: s for s in summarize(rows) if s.family == "all"}
 

@@ -72,7 +72,12 @@ def test_bench_runs_end_to_end_on_the_embedded_broker(hamburg_map: HdMap) -> Non
     assert fixed.rotations == 0
     for run in report.privacy:
         assert run.answered == run.fixes == 303
-        assert 0.0 <= run.accuracy <= 1.0
+    # The Hamburg scenario through the deployment: what the README quotes for it (lane
+    # accuracy 0.970 without rotation, less with it: a rotated pseudonym is a new track),
+    # less a margin for the live worker's batches, which depend on timing.
+    print(f"\nprivacy runs: accuracy {rotating.accuracy:.3f} rotating, {fixed.accuracy:.3f} not")
+    assert fixed.accuracy >= 0.93, fixed
+    assert rotating.accuracy <= fixed.accuracy + 0.01, (rotating, fixed)
 
     text = format_report(report)
     assert "LDM: fix -> corrected position" in text and "bare MQTT echo" in text

@@ -86,10 +86,11 @@ def _file_nodes(path: Path) -> dict[int, tuple[float, float]]:
 # ----------------------------------------------------------------------------------------------
 
 
-def test_karlsruhe_imports_fast_with_few_rejections(karlsruhe: tuple[ImportResult, float]) -> None:
+def test_karlsruhe_imports_with_few_rejections(karlsruhe: tuple[ImportResult, float]) -> None:
     result, seconds = karlsruhe
     m = result.hdmap
-    assert seconds < 8.0  # about 1.3 s on one core
+    # printed, not bounded (docs/maps/lanelet2.md quotes about 1.3 s on one core)
+    print(f"\nKarlsruhe imported in {seconds:.2f} s")
     assert len(m.segments) == 279
     by_type = Counter(lane.type for seg in m.segments.values() for lane in seg.lanes)
     assert by_type == {"driving": 358, "sidewalk": 55, "parking": 44, "bicycle": 14}

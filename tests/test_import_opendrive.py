@@ -235,8 +235,9 @@ def constant(v: float) -> Callable[[float], float]:
 def test_samples_import(tmp_path, name, origin, segments, lanes, skipped):
     t0 = time.perf_counter()
     result = import_opendrive(SAMPLES / f"{name}.xodr", origin=origin)
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 3.0
+    # how long it took is printed (docs/maps/opendrive.md quotes it: 0.13 s for curves),
+    # not bounded: a loaded machine's clock is no property of the importer
+    print(f"\n{name}: imported in {time.perf_counter() - t0:.2f} s")
     assert result.report.segments == segments
     assert result.report.lanes == lanes
     assert dict(result.report.skipped) == skipped

@@ -239,11 +239,11 @@ def test_the_liars_neighbours_keep_their_lanes_and_the_common_error(
     # for most of the run; doubted, it is outvoted once its fixes tell it from the others
     assert pooled.across_median > 0.8, pooled  # (so this test can fail)
     assert robust.across_median < 0.1, robust
-    # the neighbours' lanes: since a fix's lateral evidence allows for multipath (issue
-    # 22), a common error moved by about a metre no longer costs them their lanes pooled
-    # either (both lose 0.076 here, to the liar's presence, not to the common error);
-    # doubting the liar must never cost them more
-    assert robust.drop <= pooled.drop + 1e-9, (robust.drop, pooled.drop)
+    # the neighbours' lanes: doubting the liar keeps more of them than pooling it (with
+    # the common error's fading evidence, stop 33's model, they lose 0.092 doubted and
+    # 0.185 pooled; with issue 22's model the two were equal, 0.076, and the bound had
+    # been loosened to "no more than pooled": the claim is the old one again)
+    assert robust.drop < pooled.drop - 0.03, (robust.drop, pooled.drop)
 
 
 def test_the_liars_own_answers_are_not_scored(road: HdMap, runs: _Runs) -> None:

@@ -43,7 +43,11 @@ def test_live_accuracy_matches_offline_replay(
     assert live.errors == []
     assert live.answered == len(trace.fixes)
     online = score(hamburg_map, trace, live.answers)
-    assert abs(online.accuracy - offline.accuracy) <= 0.02
+    # The same engine and the same batching rule (`laas.engine.batches`): measured
+    # identical (0.9802 both, every run seen). The live worker's batches are what waited
+    # in its queue, so a loaded machine may cut one differently: 0.01 is 3 of the 303
+    # fixes on another lane.
+    assert abs(online.accuracy - offline.accuracy) <= 0.01, (online.accuracy, offline.accuracy)
     assert online.accuracy > 0.9
 
 
@@ -60,7 +64,9 @@ def test_rotation_costs_little_accuracy(hamburg_map: HdMap) -> None:
         assert deployment.cores["user"].stats.rotations > 0  # pseudonyms did rotate
     assert live.answered == len(trace.fixes), live.errors[:3]
     online = score(hamburg_map, trace, live.answers)
-    assert online.accuracy >= offline.accuracy - 0.1
+    # measured: no cost here (0.9802 both); the README quotes 0.029 for the bench's 20
+    # users rotating every 10 s
+    assert online.accuracy >= offline.accuracy - 0.03, (online.accuracy, offline.accuracy)
 
 
 def test_a_worker_process_needs_a_map_file() -> None:
@@ -82,5 +88,6 @@ def test_the_live_worker_answers_on_imported_maps(name: str) -> None:
         live = run_participants(deployment.user_url, trace, speedup=20.0, **deployment.trust)
     assert live.errors == [] and live.answered == len(trace.fixes)
     online = score(hdmap, trace, live.answers)
-    assert abs(online.accuracy - offline.accuracy) <= 0.05
-    assert online.accuracy > 0.5
+    # measured identical (Karlsruhe 0.8136, fabriksgatan 0.9674 both ways); the margin is
+    # for batches a loaded machine cuts differently, as above
+    assert abs(online.accuracy - offline.accuracy) <= 0.02, (online.accuracy, offline.accuracy)

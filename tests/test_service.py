@@ -82,8 +82,9 @@ def test_a_batch_gets_the_replies_one_at_a_time_would(hamburg_map: HdMap) -> Non
     in batches of 7 (users with two fixes in one batch among them), with a malformed fix,
     a duplicate and a fix from the far future mixed in. Every refusal is the same; the
     answers are the engine's in batches (`Engine.process_many`: one step of the crowd),
-    on the same lanes and within a metre of one at a time (tests/test_same_answers.py
-    bounds them on the recorded cases)."""
+    on the same lane as one at a time for all but 2 % of them, the median within a
+    centimetre, none more than 3 m away (the first fix, whose batch holds two other
+    users' first fixes); tests/test_same_answers.py records them on more cases."""
     from laas.sim.scenario import hamburg_scenario, simulate_with
 
     trace = simulate_with(hamburg_map, hamburg_scenario(), 2, sigma_pos=1.0, sigma_vel=0.25)
@@ -120,8 +121,10 @@ def test_a_batch_gets_the_replies_one_at_a_time_would(hamburg_map: HdMap) -> Non
         moved.append(math.hypot(north, east))
     # first runs: 149 of 150 on the same lane, median 0.001 m, largest 2.2 m (the very
     # first fix, which in its batch already sees the two other users' first fixes)
-    assert sum(same_lane) >= 0.95 * len(same_lane)
-    assert sorted(moved)[len(moved) // 2] <= 0.05 and max(moved) <= 5.0, max(moved)
+    # (deterministic: the same now). At most 2 % on another lane, the median within a
+    # centimetre, none further than 3 m.
+    assert sum(same_lane) >= 0.98 * len(same_lane), sum(same_lane)
+    assert sorted(moved)[len(moved) // 2] <= 0.01 and max(moved) <= 3.0, max(moved)
     assert many.stats.answered == one.stats.answered > 100
     assert (many.stats.invalid, many.stats.refused, many.stats.clock) == (1, 1, 1)
     kinds = [a["error"]["kind"] for a in alone if "error" in a]

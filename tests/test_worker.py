@@ -22,7 +22,7 @@ from laas.run.participants import run_participants
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
 from laas.worker import ServeOptions, WorkerConfig, regions, serve_worker, service
 from ldm import BrokerSettings, KeyPair, Participant
-from ldm.local.brokers import start_broker
+from ldm.local.brokers import start_broker, wait_for
 from ldm.security.crypto import aad
 from ldm.transport.mqtt import Event, Message, Transport
 from ldm.wire.messages import Announcement, Envelope
@@ -105,15 +105,24 @@ def _delayed_input_answered(url: str, delay: float) -> bool:
             time.sleep(0.05)
         ann = Announcement.model_validate_json(next(m for m in announced if m.payload).payload)
         mine = KeyPair()
-        c, t = "late-1", time.time() - delay
-        fix = {"timestamp": int(t * 1000), "latitude": 53.56, "longitude": 9.97}
-        sealed = mine.cipher(ann.service.public_key, initiator=True).seal(
-            json.dumps(fix).encode(), aad(c, t)
-        )
-        env = Envelope(c=c, t=t, k=mine.public, d=sealed)
-        spy.publish("ldm/svc/laas/in/pseudo-late", env.encode(), qos=1)
-        time.sleep(2.0)
-        return bool(replies)
+        cipher = mine.cipher(ann.service.public_key, initiator=True)
+
+        def send(c: str, t: float) -> None:
+            fix = {"timestamp": int(t * 1000), "latitude": 53.56, "longitude": 9.97}
+            sealed = cipher.seal(json.dumps(fix).encode(), aad(c, t))
+            env = Envelope(c=c, t=t, k=mine.public, d=sealed)
+            spy.publish("ldm/svc/laas/in/pseudo-late", env.encode(), qos=1)
+
+        def replied(c: str) -> bool:
+            return any(c.encode() in m.payload for m in list(replies))
+
+        # The late input, then a fresh one (the positive control): the worker takes one
+        # pseudonym's input in order, so once the fresh one is answered, the late one
+        # has been answered or dropped (no fixed wait).
+        send("late-1", time.time() - delay)
+        send("fresh-1", time.time())
+        assert wait_for(lambda: replied("fresh-1"), 30), "the fresh input was not answered"
+        return replied("late-1")
     finally:
         spy.stop()
 

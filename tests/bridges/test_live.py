@@ -3,10 +3,13 @@ garbage or fall silent, and a receiver behind Debian's gpsd fed by gpsfake."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import shutil
+import signal
+import socket
 import subprocess
 import time
 from pathlib import Path
@@ -160,6 +163,30 @@ def gpsfake() -> str:
     return found
 
 
+def stop_group(process: subprocess.Popen[bytes]) -> None:
+    """Stop `process` and every process of its group (gpsfake and its gpsd): SIGTERM,
+    which gpsfake answers by stopping its gpsd, then SIGKILL for what is left after 10 s."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(process.pid, signal.SIGTERM)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        process.poll()  # reap gpsfake, so the group can empty
+        try:
+            os.killpg(process.pid, 0)
+        except ProcessLookupError:
+            break  # no process of the group is left
+        time.sleep(0.1)
+    else:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+    process.wait(5)
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
 @pytest.mark.timeout(60)
 def test_a_receiver_behind_gpsd_is_answered(
     deployment: LocalDeployment, car: list[GpsMeasurement], tmp_path: Path
@@ -173,6 +200,7 @@ def test_a_receiver_behind_gpsd_is_answered(
         [program, "-1", "-q", "-c", "0.2", "-P", str(port), str(log)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        start_new_session=True,  # gpsfake and the gpsd it starts: one process group
     )
     answers: list[Answer] = []
     try:
@@ -195,8 +223,9 @@ def test_a_receiver_behind_gpsd_is_answered(
             sent = run_receiver(chain(), pool, "gpsd.test", answers.append)
             assert wait_for(lambda: len(answers) >= sent, 10)
     finally:
-        fake.kill()
-        fake.wait(5)
+        stop_group(fake)
+    # gpsd is gone with gpsfake (before, SIGKILL to gpsfake alone left gpsd running)
+    assert not _listening(port), f"gpsd still listens on port {port} after the test"
     assert sent >= 6  # gpsd reports a TPV per RMC; it may miss the first cycle
     corrected = [a for a in answers if isinstance(a, CorrectedPosition)]
     assert len(corrected) == sent, answers

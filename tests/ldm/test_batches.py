@@ -243,6 +243,6 @@ def test_the_core_bench_answers_every_input_and_counts_the_cpu() -> None:
     assert answered is not None, report
     assert int(answered[1]) == int(answered[2]) > 0, report
     cpu = re.search(r"cores ([\d.]+), brokers ([\d.]+), provider ([\d.]+)", report)
-    # A short run: the brokers and the provider may use less than one clock tick (10 ms).
+    # A short run: the brokers and the provider may use less than one clock tick (10 ms),
+    # so only the cores' figure must be above 0 (the pattern takes no negative number).
     assert cpu is not None and float(cpu[1]) > 0, report
-    assert all(float(x) >= 0 for x in cpu.groups()), report

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider, RequestRejected
 from ldm.config import BrokerSettings
 from ldm.local.brokers import MosquittoBroker, wait_for
+from ldm.local.embedded import EmbeddedBroker
 from ldm.local.pytest_plugin import need_mosquitto
 from ldm.transport.mqtt import Event, Message, Transport
+from ldm.wire import topics
 from ldm.wire.messages import Envelope, SessionNotice, SessionRequest
 
 from .deployment import ECHO, EchoService, has_service
@@ -129,3 +131,59 @@ def test_a_participant_restarted_under_its_name_is_answered_and_cannot_churn_key
         finally:
             provider.stop()
             core.stop()
+
+
+def test_input_on_its_way_when_its_provider_is_withdrawn_is_still_forwarded() -> None:
+    """Input from another cluster that arrives just after the provider's withdrawal (a
+    last will a NATS node sends while the provider only moves to another node) goes on
+    to the provider's input topic, where its persistent session keeps it, for
+    ``service_ttl`` s; dropped, it failed only by the participant's timeout (41 s in the
+    NATS failover test). Later input is dropped as unroutable, as before."""
+    cluster, backbone = EmbeddedBroker().start(), EmbeddedBroker().start()
+    core = Core.create("svc", cluster.url, backbone.url, service_ttl=3.0).start(timeout=5)
+    provider = Provider.create(cluster.url, ECHO, EchoService(), announce_interval=0.5)
+    provider.start(timeout=5)
+    inbox: list[Message] = []
+    spy = Transport(BrokerSettings(url=cluster.url), client_id="spy", sink=_keep(inbox), name="spy")
+    spy.subscribe(topics.provider_input_batch("echo"), 1)
+    sender = Transport(BrokerSettings(url=backbone.url), client_id="user-core", sink=_keep([]))
+    key = KeyPair()
+
+    def send(c: str) -> None:
+        env = Envelope(c=c, t=time.time(), k=key.public, d="AAAA")
+        sender.publish(topics.bb_input("svc", "echo", "user-edge", "pseudo1"), env.encode(), 1)
+
+    def forwarded(c: str) -> bool:
+        return any(c.encode() in m.payload for m in list(inbox))
+
+    try:
+        spy.start(timeout=5)
+        sender.start(timeout=5)
+        assert wait_for(lambda: core.catalog.get("echo") is not None, 5)
+        send("before")  # the positive control: a listed service's input is forwarded
+        assert wait_for(lambda: forwarded("before"), 5)
+        provider.kill()  # no goodbye: the broker sends its will, a withdrawal
+        assert wait_for(lambda: core.catalog.get("echo") is None, 5)
+        unroutable = core.stats.dropped_unroutable
+        send("after")
+        assert wait_for(lambda: forwarded("after"), 5)
+        assert core.stats.dropped_unroutable == unroutable
+        # service_ttl later the service is not this cluster's any more
+        assert wait_for(lambda: not core.catalog.served_here("echo", time.time()), 10)
+        send("late")
+        assert wait_for(lambda: core.stats.dropped_unroutable == unroutable + 1, 5)
+        assert not forwarded("late")
+    finally:
+        sender.stop()
+        spy.stop()
+        core.stop()
+        cluster.stop()
+        backbone.stop()
+
+
+def _keep(into: list[Message]) -> Callable[[Event], None]:
+    def sink(event: Event) -> None:
+        if isinstance(event, Message):
+            into.append(event)
+
+    return sink

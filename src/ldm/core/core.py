@@ -360,8 +360,7 @@ class Core(Dispatcher[Event]):
             self.catalog.core_status(msg.payload)
         elif kind == "bb_input":
             env = Envelope.model_validate_json(msg.payload)
-            svc = self.catalog.get(topic.service)
-            local = svc is not None and svc.origin == self.name
+            local = self.catalog.served_here(topic.service, time.time())
             self.router.remote_input(topic, env, msg.payload, local)
         elif kind == "bb_reply":
             env = Envelope.model_validate_json(msg.payload)

@@ -71,6 +71,8 @@ class Catalog:
         self._latest: dict[str, tuple[str | None, float, float]] = {}
         """Service -> (identity, issued, t) of the last announcement taken, also for a
         while after it is gone: an older one is refused (`_forward_only`)."""
+        self._left: dict[str, float] = {}
+        """Local service -> when it was withdrawn, for ``service_ttl`` s (`served_here`)."""
         self._published_list: list[ServiceDescription] | None = None
         self._list_payload = b""  # the retained list as this core last published it
         self._repairs = Bucket(_REPAIR_RATE, 0.0)
@@ -80,6 +82,25 @@ class Catalog:
 
     def get(self, service: str) -> ServiceEntry | None:
         return self._services.get(service)
+
+    def served_here(self, service: str, now: float) -> bool:
+        """Whether input for `service` from another cluster goes to this cluster's
+        provider: the service is this core's, or was until a withdrawal less than
+        ``service_ttl`` s ago.
+
+        A withdrawal can be a last will that a broker sent while the provider was only
+        moving to another node (a NATS node refusing its reconnect during a leader
+        election): its persistent session keeps what is sent to it meanwhile. Input
+        already on its way from another core is therefore forwarded, not dropped
+        unanswered (it then failed only by the participant's `RequestTimeout`, after
+        2 x max_age + 1 s: 41 s in tests/ldm/test_nats.py). The other core stops sending
+        once it has the withdrawal; a provider that really left answers nothing, as
+        before, and one that is back announces again."""
+        svc = self._services.get(service)
+        if svc is not None:
+            return svc.origin == self._name
+        left = self._left.get(service)
+        return left is not None and now - left < self._config.service_ttl
 
     def __contains__(self, service: object) -> bool:
         return service in self._services
@@ -308,6 +329,8 @@ class Catalog:
         if svc is None:
             return
         log.info("%s: service %s is gone", self._name, service, extra={"event": "service_gone"})
+        if svc.origin == self._name:
+            self._left[service] = time.time()
         if svc.origin == self._name and self._backbone is not None:
             self._backbone.publish(topics.bb_announce(service), b"", qos=1, retain=True)
         self.publish_list()
@@ -320,6 +343,8 @@ class Catalog:
         for name in [n for n, s in self._services.items() if s.expires <= now]:
             self._remove_service(name)
         ttl = self._config.service_ttl
+        for name in [n for n, left in self._left.items() if left + ttl <= now]:
+            del self._left[name]
         for name in [n for n, last in self._latest.items() if last[2] + ttl <= now]:
             if name not in self._services:
                 del self._latest[name]

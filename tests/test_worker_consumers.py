@@ -11,7 +11,6 @@ from laas.worker.dashboard.feed import Feed
 from laas.worker.regions import split
 from laas.worker.service import LaasService, Observation
 from ldm.provider.provider import Request
-from ldm.security.crypto import SessionCipher
 from tests.operations import hamburg_fixes
 
 
@@ -39,11 +38,10 @@ def test_the_feed_makes_no_events_for_nobody_and_shows_a_new_page_all_it_kept(
 
 
 def test_a_region_of_one_sends_no_area_notes(hamburg_map: HdMap) -> None:
-    family = SessionCipher(bytes(32), bytes(32))
     sent: list[bytes] = []
     for regions, expected in ((split(hamburg_map, 1), 0), (split(hamburg_map, 2), 1)):
         sent.clear()
-        service = LaasService(hamburg_map, region=regions[0], family=family)
+        service = LaasService(hamburg_map, region=regions[0])
         service.notes = sent.append
         fixes = hamburg_fixes(hamburg_map, 5)
         service.handle_many([_request(m, k) for k, m in enumerate(fixes)])

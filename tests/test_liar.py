@@ -235,9 +235,11 @@ def test_the_liars_neighbours_keep_their_lanes_and_the_common_error(
     robust = score_liar(road, runs.honest, runs.lying, "liar", *runs.robust)
     pooled = score_liar(road, runs.honest, runs.lying, "liar", *runs.pooled)
     assert robust.neighbours_honest > 0.95
-    # pooled in full, the liar moves the common error by a third of a lane width and more
-    # for most of the run; doubted, it is outvoted once its fixes tell it from the others
-    assert pooled.across_median > 0.8, pooled  # (so this test can fail)
+    # pooled in full, the liar moves the common error across the road by half a metre and
+    # more for most of the run (0.52 m median with each fix's own lane evidence; 0.8 m and
+    # more when the evidence was the filtered position); doubted, it is outvoted once its
+    # fixes tell it from the others
+    assert pooled.across_median > 0.4, pooled  # (so this test can fail)
     assert robust.across_median < 0.1, robust
     # the neighbours' lanes: doubting the liar keeps more of them than pooling it (with
     # the common error's fading evidence, stop 33's model, they lose 0.092 doubted and

@@ -8,7 +8,7 @@ standard deviations of the estimate the others make without it (5.7 at K = 16). 
 test checks it for lies of every size; the engine test checks what it is for: on a road
 where one car reports driving the oncoming lane, its neighbours keep their lanes and the
 common error its place, where the estimate that pools every user in full is pulled off.
-The suites' figures are `python -m laas.sim.liar --suite dev|heldout` (docs/evaluation.md).
+The suites' figures are `python -m laas.evaluation.liar --suite dev|heldout` (docs/evaluation.md).
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ import pytest
 from laas import EngineConfig, HdMap
 from laas.config import LIAR_EVIDENCE_CAP
 from laas.engine.common_error import CommonError
+from laas.evaluation.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
 from laas.map.geojson import read_geojson
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.family import build_case
-from laas.sim.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
 from laas.sim.scenario import ErrorModel, Lie, Scenario, Trace, UserPlan, simulate
 
 K = LIAR_EVIDENCE_CAP

@@ -105,7 +105,7 @@ def _cmd_scenario(a: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(a: argparse.Namespace) -> int:
-    from laas.sim.evaluate import evaluate, format_table
+    from laas.evaluation.evaluate import evaluate, format_table
     from laas.sim.scenario import get_scenario
 
     if a.suite is not None:
@@ -137,8 +137,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _evaluate_suite(a: argparse.Namespace) -> int:
     import time
 
-    from laas.sim.foreign import default_foreign_dir
-    from laas.sim.suite import (
+    from laas.evaluation.suite import (
         format_report,
         get_suite,
         run_suite,
@@ -146,6 +145,7 @@ def _evaluate_suite(a: argparse.Namespace) -> int:
         summarize,
         worst_run,
     )
+    from laas.sim.foreign import default_foreign_dir
 
     if a.foreign is not None and a.suite != "foreign":
         raise ConfigError("--foreign names the set of --suite foreign; give --suite foreign too")
@@ -186,7 +186,7 @@ def _plots(
     sigma_pos: float,
     sigma_vel: float,
 ) -> list[Path]:
-    from laas.sim.plots import scenario_plots
+    from laas.evaluation.plots import scenario_plots
 
     paths = scenario_plots(scenario, hdmap, out, seed, sigma_pos, sigma_vel)
     for p in paths:
@@ -195,7 +195,7 @@ def _plots(
 
 
 def _cmd_regions(a: argparse.Namespace) -> int:
-    from laas.sim.regional import compare_regions
+    from laas.evaluation.regional import compare_regions
     from laas.sim.scenario import simulate_with
 
     if a.workers < 2 or a.after < 1:
@@ -226,7 +226,7 @@ def _cmd_regions(a: argparse.Namespace) -> int:
 def _cmd_privacy(a: argparse.Namespace) -> int:
     import time
 
-    from laas.sim.privacy import STRATEGIES, format_privacy, privacy_rows, target_check
+    from laas.evaluation.privacy import STRATEGIES, format_privacy, privacy_rows, target_check
 
     def numbers(text: str) -> list[int]:
         return [int(x) for x in text.split(",") if x]
@@ -379,9 +379,9 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
+    from laas.evaluation.score import score
     from laas.run.participants import accounts, run_participants
     from laas.sim.scenario import simulate_with
-    from laas.sim.score import score
     from laas.sim.trace import format_answer
 
     scenario, hdmap = _scenario(a)
@@ -565,7 +565,7 @@ def _cmd_map_info(a: argparse.Namespace) -> int:
 
 
 def _cmd_map_show(a: argparse.Namespace) -> int:
-    from laas.sim.plots import render_map
+    from laas.evaluation.plots import render_map
 
     print(f"laas map show: wrote {render_map(read_geojson_file(a.map), a.out, ids=a.ids)}")
     return 0
@@ -884,7 +884,7 @@ def _add_offline(sub: Any) -> None:
     p.add_argument("--users", default="5,10,50,200", help="road users per run, comma-separated")
     p.add_argument("--duration", type=float, default=600.0, help="seconds per run")
     p.add_argument("--runs", type=int, default=1, help="seeded runs per place and user count")
-    p.add_argument("--strategies", help="comma-separated (default: all of laas.sim.privacy)")
+    p.add_argument("--strategies", help="comma-separated (default: all of laas.evaluation.privacy)")
     p.add_argument(
         "--accuracy-users",
         type=int,

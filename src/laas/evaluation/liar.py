@@ -3,7 +3,7 @@
 Every run (family, seed, sigma_pos) of a suite is simulated twice with the same noise: as
 drawn (the *honest twin*), and with one of its users lying (`draw_liar`; the lie draws
 no random numbers, so every other fix is the same number for number). Both traces go to
-a fresh `Engine` configured as the live worker would be (`laas.sim.suite.engine_config`),
+a fresh `Engine` configured as the live worker would be (`laas.evaluation.suite.engine_config`),
 once per engine variant (`VARIANTS`: `before`, the common error pooled from every user's
 evidence in full, the default; `after`, the one-liar mixture with
 K = `laas.config.LIAR_EVIDENCE_CAP`, see `laas.engine.common_error`). The liar's own
@@ -34,9 +34,9 @@ crc32(family), seed), so that the scenario's own draws are untouched:
 
 `sweep` moves the liar across the road by fixed amounts instead (the influence curve).
 
-    .venv/bin/python -m laas.sim.liar --suite dev --workers 2
-    .venv/bin/python -m laas.sim.liar --suite heldout --workers 2
-    .venv/bin/python -m laas.sim.liar --suite ci --sweep 0.5,1,1.5,2,3,4,6
+    .venv/bin/python -m laas.evaluation.liar --suite dev --workers 2
+    .venv/bin/python -m laas.evaluation.liar --suite heldout --workers 2
+    .venv/bin/python -m laas.evaluation.liar --suite ci --sweep 0.5,1,1.5,2,3,4,6
 """
 
 from __future__ import annotations
@@ -57,12 +57,12 @@ import numpy as np
 from laas.config import LIAR_EVIDENCE_CAP, EngineConfig
 from laas.engine import Engine
 from laas.errors import ConfigError
+from laas.evaluation.suite import Suite, engine_config, get_suite, sigma_vel_for
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress, progress_printer
 from laas.sim.family import FamilyCase, build_case
 from laas.sim.scenario import Lie, Scenario, Trace, simulate_with
-from laas.sim.suite import Suite, engine_config, get_suite, sigma_vel_for
 
 __all__ = [
     "VARIANTS",
@@ -189,7 +189,7 @@ def _accuracy(trace: Trace, answers: Sequence[CorrectedPosition | None], mask: n
 
 
 def _aed(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> float:
-    """Mean distance of the answers from the truth (AED), m, as `laas.sim.score` has it."""
+    """Mean distance of the answers from the truth (AED), m, as `laas.evaluation.score` has it."""
     dist = []
     for f, a in zip(trace.fixes, answers, strict=True):
         if a is not None:

@@ -253,6 +253,27 @@ def _cmd_privacy(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_liar(a: argparse.Namespace) -> int:
+    from laas.evaluation.liar import liar_report
+    from laas.evaluation.suite import get_suite
+
+    def numbers(text: str | None) -> list[float]:
+        return [float(x) for x in text.split(",") if x] if text else []
+
+    rows, report = liar_report(
+        get_suite(a.suite),
+        sweep=numbers(a.sweep),
+        caps=numbers(a.k),
+        workers=a.workers,
+        progress=progress_printer("liar", "runs"),
+    )
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump([r.as_dict() for r in rows], fh)
+    print(report)
+    return 0
+
+
 def _cmd_plot(a: argparse.Namespace) -> int:
     scenario, hdmap = _scenario(a)
     _plots(scenario, hdmap, Path(a.out), a.seed, a.sigma_pos, a.sigma_vel)
@@ -817,7 +838,8 @@ def _add_simulate(sub: Any) -> None:
 
 
 def _add_offline(sub: Any) -> None:
-    """The offline commands: replay, evaluate, bench-filter, map, asyncapi, scenario, plot."""
+    """The offline commands: replay, evaluate, privacy, liar, regions, bench-filter, map,
+    asyncapi, scenario, plot."""
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
     p.add_argument("--map", required=True, help="GeoJSON lane map")
     p.add_argument("trace", help="trace file, JSON Lines with a `user` field; - for stdin")
@@ -893,6 +915,28 @@ def _add_offline(sub: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_privacy)
+
+    p = sub.add_parser(
+        "liar",
+        help="a suite's scenarios with one participant lying, scored against their honest "
+        "twins: the common error and the neighbours' lanes (docs/security.md)",
+    )
+    p.add_argument("--suite", default="ci", help="dev, heldout, ci or smoke")
+    p.add_argument(
+        "--workers", type=int, default=None, help="processes (default: the cores, at most 4)"
+    )
+    p.add_argument(
+        "--sweep",
+        metavar="M,M",
+        help="comma-separated across offsets (m): the drawn liar lies by each instead",
+    )
+    p.add_argument("--json", metavar="FILE", help="write every row to this file")
+    p.add_argument(
+        "--k",
+        metavar="K,K",
+        help="comma-separated values of K (max_user_evidence) to score beside the variants",
+    )
+    p.set_defaults(func=_cmd_liar)
 
     p = sub.add_parser(
         "regions",

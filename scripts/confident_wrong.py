@@ -20,9 +20,9 @@ import argparse
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 
-from laas.sim.integrity import same_lane
-from laas.sim.score import answer_trace, judge
-from laas.sim.suite import engine_config, simulate_case
+from laas.evaluation.integrity import same_lane
+from laas.evaluation.score import answer_trace, judge
+from laas.evaluation.suite import engine_config, simulate_case
 
 _Answer = tuple[str, int, str, float, bool, float]  # family, seed, user, since change, right, p
 

@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import isotonic_regression
 
-from laas.sim.integrity import IntegrityTally
-from laas.sim.score import answer_trace
-from laas.sim.suite import engine_config, get_suite, simulate_case
+from laas.evaluation.integrity import IntegrityTally
+from laas.evaluation.score import answer_trace
+from laas.evaluation.suite import engine_config, get_suite, simulate_case
 
 _STEP = 0.005  # a knot is kept where g has moved this much since the last one
 BOOTSTRAP = 200  # resamples of the runs

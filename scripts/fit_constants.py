@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from laas.sim.score import answer_trace, score
-from laas.sim.suite import engine_config, get_suite, simulate_case
+from laas.evaluation.score import answer_trace, score
+from laas.evaluation.suite import engine_config, get_suite, simulate_case
 
 CANDIDATES: dict[str, tuple[float, ...]] = {
     "sigma_receiver": (0.25, 0.5, 1.0),

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from laas.engine import Engine
-from laas.engine.batches import in_batches
+from laas.evaluation.suite import engine_config
+from laas.sim.batches import in_batches
 from laas.sim.foreign import default_foreign_dir, find_roads, load_road
-from laas.sim.suite import engine_config
 
 
 def timeline(root: Path, road: int, user: str, t0: float, t1: float) -> None:

@@ -23,7 +23,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from laas.engine import Engine
-from laas.sim.suite import engine_config, get_suite, simulate_case
+from laas.evaluation.suite import engine_config, get_suite, simulate_case
 
 
 def _deficits(job: tuple[str, int, float]) -> list[float]:

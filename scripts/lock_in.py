@@ -22,8 +22,8 @@ from collections import defaultdict
 import numpy as np
 
 from laas.engine import Engine
-from laas.sim.integrity import lane_right
-from laas.sim.suite import engine_config, simulate_case
+from laas.evaluation.integrity import lane_right
+from laas.evaluation.suite import engine_config, simulate_case
 
 
 def main() -> None:

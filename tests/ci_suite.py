@@ -4,7 +4,7 @@
 default mode's batched answers of its first `FAMILY_SEEDS` dev seeds of each random-road
 family at sigma_pos 1, which are recorded cases (`tests/reference_answers`): the same
 case, trace and engine configuration, so they are taken from here instead of answered
-again. Each run is answered as `laas.sim.suite.run_case` answers it (the same
+again. Each run is answered as `laas.evaluation.suite.run_case` answers it (the same
 answerers, in the same order), keeping those answers as arrays.
 
 The test command runs the test files on two processes (pytest-xdist, `--dist loadfile`),
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from laas.sim.score import score
-from laas.sim.suite import (
+from laas.evaluation.score import score
+from laas.evaluation.suite import (
     MethodScore,
     SuiteRow,
     _answerers,

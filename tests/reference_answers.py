@@ -3,7 +3,7 @@
 Speed work (issue 13) must keep every answer: the same lane, the position and both
 accuracies (`accuracy_cross`, `accuracy_along`) within 1e-6 m. This module names the
 recorded cases, answers them with the engine as it is now, one fix at a time
-(`Engine.process`) and in batches as the live worker takes them (`laas.engine.batches`,
+(`Engine.process`) and in batches as the live worker takes them (`laas.sim.batches`,
 `Engine.process_many`), and writes or compares the record in
 `tests/data/reference-answers.npz`:
 
@@ -29,14 +29,14 @@ from pathlib import Path
 import numpy as np
 
 from laas.config import EngineConfig, Mode
-from laas.engine.batches import MAX_BATCH
+from laas.evaluation.score import answer_trace
+from laas.evaluation.suite import engine_config, get_suite, sigma_vel_for
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
+from laas.sim.batches import MAX_BATCH
 from laas.sim.family import MAP_FAMILIES, build_case
 from laas.sim.scenario import SCENARIOS, Trace, simulate_with
-from laas.sim.score import answer_trace
-from laas.sim.suite import engine_config, get_suite, sigma_vel_for
 
 RECORD = Path(__file__).parent / "data" / "reference-answers.npz"
 TOLERANCE_M = 1e-6

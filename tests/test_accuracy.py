@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import pytest
 
-from laas.sim.suite import Summary, summarize
+from laas.evaluation.suite import Summary, summarize
 from tests.ci_suite import CiSuite
 
 # What `laas evaluate --suite ci` printed when these were set (the lane evidence from the

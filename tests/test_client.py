@@ -31,8 +31,8 @@ from laas import (
     ServiceUnavailable,
     UntrustedService,
 )
+from laas.evaluation.regional import route_fixes
 from laas.run.deployment import LocalDeployment
-from laas.sim.regional import route_fixes
 from laas.sim.scenario import hamburg_scenario, simulate
 from laas.worker.regions import split
 from ldm import RotationPolicy, SigningKey

@@ -16,6 +16,8 @@ import pytest
 
 from laas.cli import main
 from laas.config import EngineConfig
+from laas.evaluation.score import score
+from laas.evaluation.suite import METHODS, format_report, get_suite, oracle_answers, run_suite
 from laas.map.geojson import read_geojson, read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.sim.family import FAMILIES, FamilyCase, Road, build_case, get_family
@@ -28,8 +30,6 @@ from laas.sim.scenario import (
     simulate,
     simulate_with,
 )
-from laas.sim.score import score
-from laas.sim.suite import METHODS, format_report, get_suite, oracle_answers, run_suite
 
 SEEDS = range(12)
 WIDTHS = {

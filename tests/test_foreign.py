@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from laas.errors import ConfigError, TraceError
+from laas.evaluation.suite import foreign_suite, get_suite, run_suite
 from laas.map.bundled import bundled_map
 from laas.map.geojson import read_geojson_file
 from laas.sim.foreign import find_roads, load_road
 from laas.sim.plan import SimulatedFix
 from laas.sim.scenario import Trace, get_scenario, simulate_with
-from laas.sim.suite import foreign_suite, get_suite, run_suite
 from laas.sim.truth import write_run
 
 

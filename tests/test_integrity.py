@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from laas.engine.calibration import KNOTS, calibrate
+from laas.evaluation.integrity import IntegrityTally, lane_holds, run_interval
+from laas.evaluation.score import score
+from laas.evaluation.suite import simulate_case
 from laas.models import CorrectedPosition
 from laas.sim.family import MAP_FAMILIES, build_case
-from laas.sim.integrity import IntegrityTally, lane_holds, run_interval
 from laas.sim.scenario import Trace
-from laas.sim.score import score
-from laas.sim.suite import simulate_case
 
 
 def _truth_answers(case_map, trace: Trace) -> list[CorrectedPosition | None]:
@@ -135,7 +135,7 @@ def test_one_user_alone_is_not_sure_of_its_lane_and_its_accuracy_says_so() -> No
     case = build_case("urban", 1)
     assert len(case.scenario.users) == 1
     from laas.engine import Engine
-    from laas.sim.suite import engine_config
+    from laas.evaluation.suite import engine_config
 
     _, trace = simulate_case("urban", 1, 1.0)
     engine = Engine(case.hdmap, engine_config("default", 1.0))

@@ -57,6 +57,12 @@ def test_the_ldm_never_imports_laas() -> None:
     assert _offending("ldm", ("laas",)) == []
 
 
+def test_what_makes_traces_never_imports_what_judges_answers() -> None:
+    """`laas.sim` makes traces and replays them; `laas.evaluation` judges the answers,
+    and builds on `laas.sim`, never the other way."""
+    assert _offending("laas/sim", ("laas.evaluation",)) == []
+
+
 def test_no_library_module_imports_a_command_line() -> None:
     """The command lines are thin faces: what both need lives in library modules."""
     users = [

@@ -8,24 +8,28 @@ standard deviations of the estimate the others make without it (5.7 at K = 16). 
 test checks it for lies of every size; the engine test checks what it is for: on a road
 where one car reports driving the oncoming lane, its neighbours keep their lanes and the
 common error its place, where the estimate that pools every user in full is pulled off.
-The suites' figures are `python -m laas.sim.liar --suite dev|heldout` (docs/evaluation.md).
+The suites' figures are `laas liar --suite dev|heldout` (docs/evaluation.md).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from laas import EngineConfig, HdMap
+from laas.cli import main
 from laas.config import LIAR_EVIDENCE_CAP
 from laas.engine.common_error import CommonError
+from laas.evaluation.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
+from laas.evaluation.suite import get_suite
 from laas.map.geojson import read_geojson
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.family import build_case
-from laas.sim.liar import Tracked, draw_liar, liar_scenario, score_liar, track_answers
 from laas.sim.scenario import ErrorModel, Lie, Scenario, Trace, UserPlan, simulate
 
 K = LIAR_EVIDENCE_CAP
@@ -266,3 +270,21 @@ def test_the_liars_own_answers_are_not_scored(road: HdMap, runs: _Runs) -> None:
         two.across_p95,
     )
     assert two.liar_accuracy == 0.0 < one.liar_accuracy
+
+
+def test_laas_liar_writes_the_rows_and_one_report_per_offset_swept(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rows = tmp_path / "rows.json"
+    argv = ["liar", "--suite", "smoke", "--sweep", "1,3", "--k", "8", "--json", str(rows)]
+    with pytest.MonkeyPatch.context() as mp:
+        # one run of the smoke suite, at each of the two offsets
+        small = get_suite("smoke").subset(families=["urban"], seeds=1, sigmas=[1.0])
+        mp.setattr("laas.evaluation.suite.get_suite", lambda name: small)
+        assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "suite smoke with a liar, across 1 m: 1 runs" in out
+    assert "suite smoke with a liar, across 3 m: 1 runs" in out
+    written = json.loads(rows.read_text())
+    assert [r["lie"]["across"] for r in written] == [1.0, 3.0]
+    assert all(set(r["variants"]) == {"before", "after", "K=8"} for r in written)

@@ -6,6 +6,7 @@ import pytest
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
+from laas.evaluation.score import answer_trace, score
 from laas.map.bundled import bundled_map
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
@@ -13,7 +14,6 @@ from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import ErrorModel, hamburg_scenario, simulate
-from laas.sim.score import answer_trace, score
 from ldm.local.brokers import BrokerKind
 from ldm.local.pytest_plugin import broker_kind
 
@@ -43,7 +43,7 @@ def test_live_accuracy_matches_offline_replay(
     assert live.errors == []
     assert live.answered == len(trace.fixes)
     online = score(hamburg_map, trace, live.answers)
-    # The same engine and the same batching rule (`laas.engine.batches`): measured
+    # The same engine and the same batching rule (`laas.sim.batches`): measured
     # identical (0.9802 both, every run seen). The live worker's batches are what waited
     # in its queue, so a loaded machine may cut one differently: 0.01 is 3 of the 303
     # fixes on another lane.

@@ -5,20 +5,20 @@ from __future__ import annotations
 import math
 
 from laas.deadreckon import dead_reckon
-from laas.map.bundled import bundled_map
-from laas.map.geojson import read_geojson_file
-from laas.models import CorrectedPosition, GpsMeasurement
-from laas.run.deployment import LocalDeployment
-from laas.run.participants import run_participants
-from laas.sim.privacy import (
+from laas.evaluation.privacy import (
     DEFAULT_STRATEGY,
     STRATEGIES,
     privacy_run,
     privacy_trace,
     service_view,
 )
+from laas.evaluation.score import judge, score
+from laas.map.bundled import bundled_map
+from laas.map.geojson import read_geojson_file
+from laas.models import CorrectedPosition, GpsMeasurement
+from laas.run.deployment import LocalDeployment
+from laas.run.participants import run_participants
 from laas.sim.scenario import get_scenario, simulate
-from laas.sim.score import judge, score
 from ldm import CoreConfig, RotationPolicy
 
 DEFAULT_BOUND = 0.5

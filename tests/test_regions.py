@@ -9,11 +9,11 @@ import pytest
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
+from laas.evaluation.score import answer_trace, score
 from laas.map.hdmap import HdMap
 from laas.run.deployment import LocalDeployment
 from laas.run.participants import run_participants
 from laas.sim.scenario import hamburg_scenario, simulate
-from laas.sim.score import answer_trace, score
 from laas.worker.regions import parse_region, split
 from laas.worker.service import service_spec
 from ldm import BrokerSettings
@@ -283,7 +283,7 @@ def test_a_user_crossing_the_border_keeps_its_track(hamburg_map: HdMap) -> None:
     import time
 
     from laas.engine import Engine
-    from laas.sim.regional import route_fixes
+    from laas.evaluation.regional import route_fixes
     from ldm import CryptoError, Participant, RoutedSession
     from ldm.security.crypto import region_cipher
     from ldm.security.identity import SigningKey

@@ -1,7 +1,7 @@
 """Speed work changes no answer, and batches change answers only within stated bounds.
 
 One at a time (`Engine.process`) and in batches as the live worker takes them
-(`laas.engine.batches`, `Engine.process_many`), the engine gives its record
+(`laas.sim.batches`, `Engine.process_many`), the engine gives its record
 (`tests/reference_answers`) exactly: the same lanes, positions and both accuracies
 (`accuracy_cross`, `accuracy_along`) within 1e-6 m. In batches the common error takes
 one measurement update per batch, so a user's answer also sees the evidence of the
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from laas.sim.score import answer_trace, score
+from laas.evaluation.score import answer_trace, score
 from tests.ci_suite import CiSuite, recorded_runs
 from tests.reference_answers import (
     TOLERANCE_M,

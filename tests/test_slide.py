@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from laas import EngineConfig, HdMap
+from laas.evaluation.score import answer_trace
 from laas.map.geojson import read_geojson
 from laas.map.mapgen import Curve, LaneSpec, Straight, local_to_lonlat, road_features, track
 from laas.sim.scenario import ErrorModel, Scenario, UserPlan, simulate
-from laas.sim.score import answer_trace
 
 LANES = (
     LaneSpec("driving", 3.25, "forward"),

@@ -105,7 +105,7 @@ def _cmd_scenario(a: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(a: argparse.Namespace) -> int:
-    from laas.sim.evaluate import evaluate, format_table
+    from laas.evaluation.evaluate import evaluate, format_table
     from laas.sim.scenario import get_scenario
 
     if a.suite is not None:
@@ -137,8 +137,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _evaluate_suite(a: argparse.Namespace) -> int:
     import time
 
-    from laas.sim.foreign import default_foreign_dir
-    from laas.sim.suite import (
+    from laas.evaluation.suite import (
         format_report,
         get_suite,
         run_suite,
@@ -146,6 +145,7 @@ def _evaluate_suite(a: argparse.Namespace) -> int:
         summarize,
         worst_run,
     )
+    from laas.sim.foreign import default_foreign_dir
 
     if a.foreign is not None and a.suite != "foreign":
         raise ConfigError("--foreign names the set of --suite foreign; give --suite foreign too")
@@ -186,7 +186,7 @@ def _plots(
     sigma_pos: float,
     sigma_vel: float,
 ) -> list[Path]:
-    from laas.sim.plots import scenario_plots
+    from laas.evaluation.plots import scenario_plots
 
     paths = scenario_plots(scenario, hdmap, out, seed, sigma_pos, sigma_vel)
     for p in paths:
@@ -195,7 +195,7 @@ def _plots(
 
 
 def _cmd_regions(a: argparse.Namespace) -> int:
-    from laas.sim.regional import compare_regions
+    from laas.evaluation.regional import compare_regions
     from laas.sim.scenario import simulate_with
 
     if a.workers < 2 or a.after < 1:
@@ -226,7 +226,7 @@ def _cmd_regions(a: argparse.Namespace) -> int:
 def _cmd_privacy(a: argparse.Namespace) -> int:
     import time
 
-    from laas.sim.privacy import STRATEGIES, format_privacy, privacy_rows, target_check
+    from laas.evaluation.privacy import STRATEGIES, format_privacy, privacy_rows, target_check
 
     def numbers(text: str) -> list[int]:
         return [int(x) for x in text.split(",") if x]
@@ -250,6 +250,27 @@ def _cmd_privacy(a: argparse.Namespace) -> int:
         print(format_privacy(rows))
         print(f"\n{target_check(rows)}")
         print(f"({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+def _cmd_liar(a: argparse.Namespace) -> int:
+    from laas.evaluation.liar import liar_report
+    from laas.evaluation.suite import get_suite
+
+    def numbers(text: str | None) -> list[float]:
+        return [float(x) for x in text.split(",") if x] if text else []
+
+    rows, report = liar_report(
+        get_suite(a.suite),
+        sweep=numbers(a.sweep),
+        caps=numbers(a.k),
+        workers=a.workers,
+        progress=progress_printer("liar", "runs"),
+    )
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump([r.as_dict() for r in rows], fh)
+    print(report)
     return 0
 
 
@@ -379,9 +400,9 @@ def _serve_worker(a: argparse.Namespace, metrics: Metrics | None) -> int:
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
+    from laas.evaluation.score import score
     from laas.run.participants import accounts, run_participants
     from laas.sim.scenario import simulate_with
-    from laas.sim.score import score
     from laas.sim.trace import format_answer
 
     scenario, hdmap = _scenario(a)
@@ -565,7 +586,7 @@ def _cmd_map_info(a: argparse.Namespace) -> int:
 
 
 def _cmd_map_show(a: argparse.Namespace) -> int:
-    from laas.sim.plots import render_map
+    from laas.evaluation.plots import render_map
 
     print(f"laas map show: wrote {render_map(read_geojson_file(a.map), a.out, ids=a.ids)}")
     return 0
@@ -817,7 +838,8 @@ def _add_simulate(sub: Any) -> None:
 
 
 def _add_offline(sub: Any) -> None:
-    """The offline commands: replay, evaluate, bench-filter, map, asyncapi, scenario, plot."""
+    """The offline commands: replay, evaluate, privacy, liar, regions, bench-filter, map,
+    asyncapi, scenario, plot."""
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
     p.add_argument("--map", required=True, help="GeoJSON lane map")
     p.add_argument("trace", help="trace file, JSON Lines with a `user` field; - for stdin")
@@ -884,7 +906,7 @@ def _add_offline(sub: Any) -> None:
     p.add_argument("--users", default="5,10,50,200", help="road users per run, comma-separated")
     p.add_argument("--duration", type=float, default=600.0, help="seconds per run")
     p.add_argument("--runs", type=int, default=1, help="seeded runs per place and user count")
-    p.add_argument("--strategies", help="comma-separated (default: all of laas.sim.privacy)")
+    p.add_argument("--strategies", help="comma-separated (default: all of laas.evaluation.privacy)")
     p.add_argument(
         "--accuracy-users",
         type=int,
@@ -893,6 +915,28 @@ def _add_offline(sub: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_privacy)
+
+    p = sub.add_parser(
+        "liar",
+        help="a suite's scenarios with one participant lying, scored against their honest "
+        "twins: the common error and the neighbours' lanes (docs/security.md)",
+    )
+    p.add_argument("--suite", default="ci", help="dev, heldout, ci or smoke")
+    p.add_argument(
+        "--workers", type=int, default=None, help="processes (default: the cores, at most 4)"
+    )
+    p.add_argument(
+        "--sweep",
+        metavar="M,M",
+        help="comma-separated across offsets (m): the drawn liar lies by each instead",
+    )
+    p.add_argument("--json", metavar="FILE", help="write every row to this file")
+    p.add_argument(
+        "--k",
+        metavar="K,K",
+        help="comma-separated values of K (max_user_evidence) to score beside the variants",
+    )
+    p.set_defaults(func=_cmd_liar)
 
     p = sub.add_parser(
         "regions",

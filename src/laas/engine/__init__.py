@@ -11,7 +11,6 @@ calibration    the lane probability mapped to how often it is right
 engine         map -> tracks -> segments -> lane filter -> corrected positions, and
                `make_lane_filter`, the lane filter of a mode
 handover       what one regional worker hands the next: a user's state, area evidence
-batches        fixes in batches, offline as the live worker takes them
 """
 
 from laas.engine.engine import Engine, EngineStats

@@ -53,6 +53,7 @@ from typing import Any, Literal
 import numpy as np
 
 from laas.errors import ConfigError
+from laas.evaluation.score import score
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.run.deployment import BrokerChoice, LocalDeployment
@@ -73,7 +74,6 @@ from laas.sim.scenario import (
     hamburg_scenario,
     simulate,
 )
-from laas.sim.score import score
 from ldm import BrokerSettings, RoutedSession, Session
 from ldm.local.brokers import find_mosquitto
 from ldm.transport import Event, Message, Transport

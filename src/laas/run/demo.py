@@ -14,13 +14,13 @@ from pathlib import Path
 
 from laas.config import EngineConfig
 from laas.errors import ConfigError
+from laas.evaluation.plots import plot_lanes_over_time, plot_traces
+from laas.evaluation.score import RunResult, answer_trace, score
 from laas.map.geojson import read_geojson_file
 from laas.progress import progress_printer
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.participants import run_participants
-from laas.sim.plots import plot_lanes_over_time, plot_traces
 from laas.sim.scenario import hamburg_scenario, simulate_with
-from laas.sim.score import RunResult, answer_trace, score
 from laas.worker.dashboard import DashboardServer
 
 __all__ = ["run_demo"]

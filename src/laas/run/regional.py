@@ -3,18 +3,18 @@
 `compare_live` starts a local deployment (`LocalDeployment`: three brokers, two cores)
 with one worker, drives the trace's users through it as LDM participants
 (`run_participants`, which route by region with `ldm.RoutedSession`), then the same
-with N regional workers, and scores both against the truth as `laas.sim.regional` does
+with N regional workers, and scores both against the truth as `laas.evaluation.regional` does
 offline (`compare_answers`). ``laas regions --live`` prints it.
 """
 
 from __future__ import annotations
 
 from laas.config import EngineConfig
+from laas.evaluation.regional import RegionalComparison, compare_answers
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.run.deployment import BrokerChoice, LocalDeployment
 from laas.run.participants import run_participants
-from laas.sim.regional import RegionalComparison, compare_answers
 from laas.sim.scenario import Trace
 from laas.worker.regions import split
 

@@ -9,7 +9,7 @@ A foreign set holds one folder per road under one folder per receiver noise,
                                        `laas scenario` writes them), segment and lane
                         meta.json      what was drawn (optional)
 
-and is scored as the project's own runs are (`laas.sim.score`), by (segment, lane) id as
+and is scored as the project's own runs are (`laas.evaluation.score`), by (segment, lane) id as
 well as by geometry. Such a set says nothing of the common error it drew beyond its size,
 so the oracle's common error at a fix is estimated from the truth: the mean of every
 fix's error, fix less truth, within `ORACLE_WINDOW` seconds of it,

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 from laas.config import EngineConfig
-from laas.engine.batches import IDLE, Idle, in_batches
 from laas.engine.engine import Engine
 from laas.errors import TraceError
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
+from laas.sim.batches import IDLE, Idle, in_batches
 from laas.sim.trace import TraceLine
 
 __all__ = ["ReplayResult", "replay"]
@@ -33,7 +33,7 @@ def replay(
     on_error: Callable[[TraceError], None] | None = None,
 ) -> Iterator[ReplayResult]:
     """Feed the trace to one engine in file order, in batches as the live worker takes
-    them (`laas.engine.batches`); bad lines go to `on_error`. `IDLE` among the lines (a
+    them (`laas.sim.batches`); bad lines go to `on_error`. `IDLE` among the lines (a
     live source with nothing more ready) answers the batch gathered so far.
 
     Lines the engine refuses (a duplicate or an older timestamp of the same user) are

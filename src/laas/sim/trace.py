@@ -8,7 +8,7 @@ and the problem, and the reader goes on with the next.
 
 A trace that is still being written (a pipe, a terminal: `is_live`) is read with
 `live_lines`, which says `IDLE` whenever no whole line is ready, so that `laas replay`
-answers what it has instead of waiting for the next line (`laas.engine.batches`).
+answers what it has instead of waiting for the next line (`laas.sim.batches`).
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from typing import Literal
 
 from pydantic import ValidationError
 
-from laas.engine.batches import IDLE, Idle
 from laas.errors import TraceError
 from laas.models import CorrectedPosition, GpsMeasurement, problems
+from laas.sim.batches import IDLE, Idle
 
 __all__ = [
     "TraceLine",

@@ -3,7 +3,7 @@
 Every run (family, seed, sigma_pos) of a suite is simulated twice with the same noise: as
 drawn (the *honest twin*), and with one of its users lying (`draw_liar`; the lie draws
 no random numbers, so every other fix is the same number for number). Both traces go to
-a fresh `Engine` configured as the live worker would be (`laas.sim.suite.engine_config`),
+a fresh `Engine` configured as the live worker would be (`laas.evaluation.suite.engine_config`),
 once per engine variant (`VARIANTS`: `before`, the common error pooled from every user's
 evidence in full, the default; `after`, the one-liar mixture with
 K = `laas.config.LIAR_EVIDENCE_CAP`, see `laas.engine.common_error`). The liar's own
@@ -34,18 +34,15 @@ crc32(family), seed), so that the scenario's own draws are untouched:
 
 `sweep` moves the liar across the road by fixed amounts instead (the influence curve).
 
-    .venv/bin/python -m laas.sim.liar --suite dev --workers 2
-    .venv/bin/python -m laas.sim.liar --suite heldout --workers 2
-    .venv/bin/python -m laas.sim.liar --suite ci --sweep 0.5,1,1.5,2,3,4,6
+    laas liar --suite dev --workers 2
+    laas liar --suite heldout --workers 2
+    laas liar --suite ci --sweep 0.5,1,1.5,2,3,4,6
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
-import sys
 import time
 import zlib
 from collections.abc import Iterator, Sequence
@@ -57,12 +54,12 @@ import numpy as np
 from laas.config import LIAR_EVIDENCE_CAP, EngineConfig
 from laas.engine import Engine
 from laas.errors import ConfigError
+from laas.evaluation.suite import Suite, engine_config, sigma_vel_for
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.progress import Progress, progress_printer
+from laas.progress import Progress
 from laas.sim.family import FamilyCase, build_case
 from laas.sim.scenario import Lie, Scenario, Trace, simulate_with
-from laas.sim.suite import Suite, engine_config, get_suite, sigma_vel_for
 
 __all__ = [
     "VARIANTS",
@@ -71,6 +68,7 @@ __all__ = [
     "Tracked",
     "draw_liar",
     "format_liar_report",
+    "liar_report",
     "liar_scenario",
     "run_liar_case",
     "run_liar_suite",
@@ -189,7 +187,7 @@ def _accuracy(trace: Trace, answers: Sequence[CorrectedPosition | None], mask: n
 
 
 def _aed(hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]) -> float:
-    """Mean distance of the answers from the truth (AED), m, as `laas.sim.score` has it."""
+    """Mean distance of the answers from the truth (AED), m, as `laas.evaluation.score` has it."""
     dist = []
     for f, a in zip(trace.fixes, answers, strict=True):
         if a is not None:
@@ -425,51 +423,31 @@ def format_liar_report(
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else "")
-    parser.add_argument("--suite", default="ci", help="dev, heldout, ci or smoke")
-    parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument(
-        "--sweep",
-        default=None,
-        help="comma-separated across offsets (m): the drawn liar lies by each instead",
-    )
-    parser.add_argument("--json", default=None, help="write every row to this file")
-    parser.add_argument(
-        "--k",
-        default=None,
-        help="comma-separated values of K (max_user_evidence) to score beside the variants",
-    )
-    a = parser.parse_args(argv)
-    suite = get_suite(a.suite)
+def liar_report(
+    suite: Suite,
+    *,
+    sweep: Sequence[float] = (),
+    caps: Sequence[float] = (),
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> tuple[list[LiarRow], str]:
+    """`laas liar`: every run of the suite with its liar, scored for each engine variant
+    (`VARIANTS`, and beside them K = each of `caps`), and the report. With `sweep`, the
+    drawn liar lies across the road by each of its offsets (m) instead, one report each."""
     variants: dict[str, dict[str, object]] = dict(VARIANTS)
-    for k in a.k.split(",") if a.k else []:
+    for k in caps:
         variants[f"K={float(k):g}"] = {"max_user_evidence": float(k)}
-    sweep = [Lie(across=float(x)) for x in a.sweep.split(",")] if a.sweep else []
-    lies: list[Lie | None] = [*sweep] if sweep else [None]
+    lies_across = [Lie(across=float(x)) for x in sweep]
+    lies: list[Lie | None] = [*lies_across] if lies_across else [None]
     t0 = time.perf_counter()
-    rows = run_liar_suite(
-        suite,
-        lies=lies,
-        variants=variants,
-        workers=a.workers,
-        progress=progress_printer("liar", "runs"),
-    )
+    rows = run_liar_suite(suite, lies=lies, variants=variants, workers=workers, progress=progress)
     seconds = time.perf_counter() - t0
-    if a.json:
-        with open(a.json, "w") as fh:
-            json.dump([r.as_dict() for r in rows], fh)
-    if sweep:
-        per = len(rows) // len(sweep)
-        for k, lie in enumerate(sweep):
-            part = rows[k * per : (k + 1) * per]
-            print(format_liar_report(suite, part, None, f", across {lie.across:g} m"))
-            print()
-        print(f"{seconds:.0f} s")
-    else:
-        print(format_liar_report(suite, rows, seconds))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    if not lies_across:
+        return rows, format_liar_report(suite, rows, seconds)
+    per = len(rows) // len(lies_across)
+    parts = [
+        format_liar_report(suite, rows[k * per : (k + 1) * per], None, f", across {lie.across:g} m")
+        + "\n"
+        for k, lie in enumerate(lies_across)
+    ]
+    return rows, "\n".join([*parts, f"{seconds:.0f} s"])

@@ -2,7 +2,7 @@
 
 Each configuration is run on `runs` seeds, in a pool of processes; every run simulates
 the scenario, feeds its fixes to a fresh `Engine` one by one (exactly as `laas replay`
-and the worker do) and scores the answers (:mod:`laas.sim.score`). The table shows the
+and the worker do) and scores the answers (:mod:`laas.evaluation.score`). The table shows the
 mean over runs.
 """
 
@@ -18,12 +18,12 @@ from functools import lru_cache
 import numpy as np
 
 from laas.config import EngineConfig, Mode
+from laas.evaluation.integrity import Integrity, IntegrityTally
+from laas.evaluation.score import RunResult, run_trace
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
 from laas.progress import Progress
-from laas.sim.integrity import Integrity, IntegrityTally
 from laas.sim.scenario import ErrorModel, Scenario, simulate
-from laas.sim.score import RunResult, run_trace
 
 __all__ = ["PAPER_TABLE_I", "TABLE_I_CONFIGS", "Row", "evaluate", "format_table"]
 

@@ -203,8 +203,8 @@ def scenario_plots(
     """Simulate one run of `scenario` and draw it into folder `out`: the traces, and the
     lanes over time as each mode (paper, default) answers them; the paths written."""
     from laas.config import EngineConfig
+    from laas.evaluation.score import answer_trace
     from laas.sim.scenario import simulate_with
-    from laas.sim.score import answer_trace
 
     name = scenario.name
     trace = simulate_with(hdmap, scenario, seed, sigma_pos=sigma_pos, sigma_vel=sigma_vel)

@@ -15,7 +15,7 @@ the scenario's other error features as drawn) and answers every fix three ways:
 
 The engine is configured as the live worker would be: EngineConfig(mode, sigma_pos,
 sigma_vel) with sigma_vel = 0.25 m/s up to sigma_pos 1 m and 0.5 m/s above (the paper's
-Table I pairs); it is told nothing else about the scenario. Scores are laas.sim.score's.
+Table I pairs); it is told nothing else about the scenario. Scores are laas.evaluation.score's.
 """
 
 from __future__ import annotations
@@ -35,15 +35,15 @@ from pydantic import BaseModel, ConfigDict
 from laas.config import EngineConfig, Mode
 from laas.engine.tracking import Fix, Track, TrackUpdate
 from laas.errors import ConfigError
+from laas.evaluation.integrity import Integrity, IntegrityTally, run_interval
+from laas.evaluation.score import RunResult, answer_trace, score
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
 from laas.progress import Progress
 from laas.sim.family import FAMILIES, MAP_FAMILIES, FamilyCase, build_case
 from laas.sim.foreign import FOREIGN_FAMILY, ForeignRoad, find_roads, load_road
-from laas.sim.integrity import Integrity, IntegrityTally, run_interval
 from laas.sim.plan import Fixes
 from laas.sim.scenario import Trace, simulate_with
-from laas.sim.score import RunResult, answer_trace, score
 
 __all__ = [
     "METHODS",
@@ -457,7 +457,7 @@ def run_suite(
 
 def suite_plots(row: SuiteRow, out: Path) -> list[Path]:
     """The pictures of one run: the traces on the lanes, and each method's lanes over time."""
-    from laas.sim.plots import plot_lanes_over_time, plot_traces
+    from laas.evaluation.plots import plot_lanes_over_time, plot_traces
 
     case, trace = simulate_case(row.family, row.seed, row.sigma_pos)
     out.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ the core and the participant library would: the same `next_rotation` times the c
 ``rotate`` notices, the same `Rotator` decides the participant's own changes and its
 silence, from the speed its receiver reports. What comes out is the service's view, one
 (pseudonym, time, position, velocity) per input sent, which the attacker
-(`laas.sim.linker`) joins. Against the truth (which user each pseudonym was) a run
+(`laas.evaluation.linker`) joins. Against the truth (which user each pseudonym was) a run
 reports
 
     changes    pseudonym changes inside trips (an old pseudonym, then a new one)
@@ -41,6 +41,8 @@ from laas.config import EngineConfig
 from laas.deadreckon import dead_reckon
 from laas.engine import Engine
 from laas.errors import ConfigError
+from laas.evaluation.linker import Observation, link
+from laas.evaluation.score import judge
 from laas.map.bundled import bundled_map
 from laas.map.geo import UtmProjection
 from laas.map.geojson import read_geojson, read_geojson_file
@@ -48,10 +50,8 @@ from laas.map.hdmap import HdMap
 from laas.map.mapgen import Curve, LaneSpec, Straight, road_features_utm, track
 from laas.models import CorrectedPosition, GpsMeasurement
 from laas.sim.family import FAMILIES, MAP_FAMILIES, build_case
-from laas.sim.linker import Observation, link
 from laas.sim.roam import roam_scenario
 from laas.sim.scenario import Trace, simulate
-from laas.sim.score import judge
 from ldm.client.rotation import Rotator
 from ldm.config import CoreConfig
 from ldm.core.rotation import next_rotation
@@ -72,7 +72,7 @@ __all__ = [
 
 LONG_TRIP = 300.0  # s: the C-ITS aim counts trips longer than 5 min
 AROUND = 15.0  # s either side of a change: the 30 s window whose accuracy is reported
-ATTACKERS = (2.0, 0.5)  # m/s^2 the tracker allows for (`laas.sim.linker`); the one that
+ATTACKERS = (2.0, 0.5)  # m/s^2 the tracker allows for (`laas.evaluation.linker`); the one that
 #                         re-links more counts: a loose gate for turns, a tight one for crowds
 
 
@@ -402,7 +402,7 @@ def _changes(
 def _scores(
     hdmap: HdMap, trace: Trace, answers: Sequence[CorrectedPosition | None]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per fix: the answered lane is right (as `laas.sim.score` counts it), and the error
+    """Per fix: the answered lane is right (as `laas.evaluation.score` counts it), and the error
     in m (nan unanswered)."""
     right = np.zeros(len(answers), dtype=bool)
     err = np.full(len(answers), np.nan)

@@ -4,11 +4,11 @@
     AED    = mean sqrt((e_hat - e)^2 + (n_hat - n)^2),
     Acc.   = share of fixes whose answered lane is the true one by geometry: it holds
              the true position, or it is the truth's lane continued across element seams
-             (`laas.sim.integrity`; the same physical lane wherever a map cuts its road
+             (`laas.evaluation.integrity`; the same physical lane wherever a map cuts its road
              into elements); Acc. by id, beside it for one release, the share
              whose (segment, lane) is the true one.
 
-Each answer's stated confidence is scored too (`laas.sim.integrity`): its probability
+Each answer's stated confidence is scored too (`laas.evaluation.integrity`): its probability
 against whether its (segment, lane) was the true one (the probability is that of the road
 element and the lane it names: near a seam, within the error along the road, the
 neighbouring element's lane is a wrong answer), its accuracies across and along the road
@@ -30,10 +30,10 @@ import numpy as np
 
 from laas.config import EngineConfig
 from laas.engine import Engine
-from laas.engine.batches import MAX_BATCH, in_batches
+from laas.evaluation.integrity import IntegrityTally, lane_right
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
-from laas.sim.integrity import IntegrityTally, lane_right
+from laas.sim.batches import MAX_BATCH, in_batches
 from laas.sim.plan import Fixes
 from laas.sim.scenario import SimulatedFix
 
@@ -69,7 +69,7 @@ def answer_trace(
     hdmap: HdMap, trace: Fixes, config: EngineConfig | None = None, max_batch: int = MAX_BATCH
 ) -> list[CorrectedPosition | None]:
     """A fresh engine's answer to every fix of a simulated trace, in order, given to it
-    in batches as the live worker takes them (`laas.engine.batches`; `max_batch` 1: one
+    in batches as the live worker takes them (`laas.sim.batches`; `max_batch` 1: one
     at a time)."""
     engine = Engine(hdmap, config)
     fixes = [(f.user, f.measurement) for f in trace.fixes]

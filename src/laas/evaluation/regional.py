@@ -4,7 +4,7 @@ Each fix goes to the worker of its region as a participant routes it live
 (`ldm.client.routing.RoutedSession`): it stays with its worker while the fix lies in that
 worker's coverage (`laas.worker.regions`, the strip grown by the overlap) and else goes
 to the worker whose coverage holds it deepest. Every worker is an `Engine` fed in the
-batches the live worker takes (`laas.engine.batches`). With ``handover`` on, a user's
+batches the live worker takes (`laas.sim.batches`). With ``handover`` on, a user's
 state moves with it (`Engine.export_user` -> `Engine.import_user`, what the live workers
 seal and pass through the participant: `laas.worker.service`), and every
 ``share_every`` seconds of the trace each worker gives its neighbours its own estimate of
@@ -22,11 +22,11 @@ from dataclasses import dataclass
 
 from laas.config import EngineConfig
 from laas.engine import Engine
-from laas.engine.batches import in_batches
+from laas.evaluation.score import RunResult, answer_trace, judge, score
 from laas.map.hdmap import HdMap
 from laas.models import CorrectedPosition
+from laas.sim.batches import in_batches
 from laas.sim.scenario import Trace
-from laas.sim.score import RunResult, answer_trace, judge, score
 from laas.worker.regions import Region, split
 
 __all__ = [

@@ -471,6 +471,7 @@ class CooperativeLaneFilter(LaneFilter):
                 cov[k],
                 float(cross[k]),
                 tangent[k],
+                float(s_now[k]),
             )
             for k in rows.tolist()
         ]

@@ -76,9 +76,6 @@ class Engine:
         x0, y0, x1, y1 = hdmap.bounds
         lon, lat = hdmap.projection.to_wgs84((x0 + x1) / 2.0, (y0 + y1) / 2.0)
         self._convergence = math.radians(hdmap.projection.convergence(lon, lat))
-        # the elements another one joins before their start, and after their end
-        self._joined_before = {succ for seg in hdmap.segments.values() for succ in seg.successors}
-        self._joined_after = {seg.id for seg in hdmap.segments.values() if seg.successors}
 
     @property
     def users(self) -> int:
@@ -339,7 +336,10 @@ class Engine:
         lane = placed.lane
         probability = placed.probability
         if self.config.mode == "default":
-            probability *= self._on_element(segment, point, along)
+            station = placed.station
+            if station is None:
+                station, _ = segment.frame(float(point[0]), float(point[1]))
+            probability *= self._on_element(segment, station, along)
             if self.config.calibrated:
                 probability = calibrate(probability)
         return _Answer(
@@ -353,21 +353,20 @@ class Engine:
             along,
         )
 
-    def _on_element(self, segment: Segment, point: np.ndarray, along: float) -> float:
-        """P(the user is on `segment` and not on an element that joins it), its station s
-        along the road ~ N(s^, along^2) on an element of length L:
+    def _on_element(self, segment: Segment, s: float, along: float) -> float:
+        """P(the user is on `segment` and not on an element that joins it), its station
+        along the road ~ N(s, along^2) on an element of length L:
 
-            P = 1 - [joined before] Phi(-s^ / along) - [joined after] Phi((s^ - L) / along)
+            P = 1 - [joined before] Phi(-s / along) - [joined after] Phi((s - L) / along)
 
         An answer names a road element as well as a lane: near where two elements meet,
         within the error along the road, it may be the neighbour's, and its probability
         says so. Where no element joins (a road's end), the user is on this one."""
-        s, _ = segment.frame(float(point[0]), float(point[1]))
         sigma = max(along, 1e-6)
         out = 1.0
-        if segment.id in self._joined_before:
+        if self.map.predecessors(segment.id):
             out -= _phi(-s / sigma)
-        if segment.id in self._joined_after:
+        if segment.successors:
             out -= _phi((s - segment.length) / sigma)
         return max(out, 0.0)
 

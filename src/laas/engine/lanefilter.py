@@ -34,6 +34,7 @@ class Placement:
     common_cov: np.ndarray  # (2, 2) covariance of the common error removed, m^2
     cross: float  # 1-sigma across the road, m
     tangent: np.ndarray | None = None  # (2,) the road's direction at the point, if known
+    station: float | None = None  # the point's distance along the element, m, if known
 
 
 class LaneFilter(ABC):

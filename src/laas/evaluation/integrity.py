@@ -29,7 +29,6 @@ cannot be seen) is scored for its lane by this and for its position by the AED.
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
@@ -120,21 +119,11 @@ def lane_right(
     return lane_holds(hdmap, segment, lane, x, y) or same_lane(hdmap, (segment, lane), truth)
 
 
-_PREDECESSORS: weakref.WeakKeyDictionary[HdMap, dict[str, list[str]]] = weakref.WeakKeyDictionary()
-
-
 def _neighbours(hdmap: HdMap, segment: str) -> list[tuple[str, bool]]:
     """The elements that join `segment`: (id, True) after its end, (id, False) before its
     start."""
-    before = _PREDECESSORS.get(hdmap)
-    if before is None:
-        before = {}
-        for seg in hdmap.segments.values():
-            for nxt in seg.successors:
-                before.setdefault(nxt, []).append(seg.id)
-        _PREDECESSORS[hdmap] = before
-    after = [(s, True) for s in hdmap.segments[segment].successors if s in hdmap.segments]
-    return after + [(s, False) for s in before.get(segment, ())]
+    after = [(s, True) for s in hdmap.segments[segment].successors]
+    return after + [(s, False) for s in hdmap.predecessors(segment)]
 
 
 def _continued(hdmap: HdMap, seg: Segment, lane: int, nxt: Segment, at_end: bool) -> int | None:

@@ -434,6 +434,11 @@ class HdMap:
         self.projection = projection
         self.source = source
         self._segments = MappingProxyType(by_id)
+        before: dict[str, list[str]] = {}
+        for seg in segs:
+            for succ in seg.successors:
+                before.setdefault(succ, []).append(seg.id)
+        self._predecessors = {k: tuple(v) for k, v in before.items()}
         self._sorted = sorted(segs, key=lambda seg: seg.id)  # tree index order = id order
         self._areas = np.array([seg.area for seg in self._sorted], object)
         self._tree = STRtree(self._areas)
@@ -451,6 +456,10 @@ class HdMap:
     def segments(self) -> Mapping[str, Segment]:
         """Segments by id, in file order."""
         return self._segments
+
+    def predecessors(self, segment: str) -> tuple[str, ...]:
+        """The segments that name `segment` among their successors, in file order."""
+        return self._predecessors.get(segment, ())
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:

@@ -622,13 +622,14 @@ class CommonError:
         worst term: had they been worked out, they would have fared no better. Without
         that a cell the window left out kept a record of no evidence against it, and a
         cell the window takes back later, when the evidence fades, read in the record as
-        the best of all (a neighbour's posterior went there after a hand-over)."""
+        the best of all (a neighbour's posterior went there after a hand-over). Adding
+        the worst term to every cell and the rest to the window's is, up to a constant
+        that `shared` takes away (it subtracts the maximum) and that fading only scales,
+        adding term - min(term) to the window's alone."""
         if self._own is None:
             return
         i0, i1, j0, j1 = self._win
-        worst = float(term.min())
-        self._own += worst
-        self._own[i0:i1, j0:j1] += term - worst
+        self._own[i0:i1, j0:j1] += term - term.min()
         self._own_any = True
 
     def user_evidence(self, user: str) -> tuple[tuple[int, int, int, int], np.ndarray] | None:

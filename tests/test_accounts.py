@@ -6,7 +6,9 @@ another user wrote it, without MODE set."""
 from __future__ import annotations
 
 import os
+import stat
 import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pydantic
@@ -27,13 +29,36 @@ MOSQUITTO_UID = 1883  # the user eclipse-mosquitto runs as
 OTHER_UID = 65534  # a host user who is not root (nobody)
 
 
+LDM_PATHS = [Path(ldm.__file__).parent.parent, Path(pydantic.__file__).parent.parent]
+"""Where this checkout's ldm and its dependencies lie (the PYTHONPATH of `ldm_for`)."""
+
+
+@pytest.fixture
+def reach() -> Iterator[Callable[[Path], None]]:
+    """Let another user pass through the folders above a path (o+x where it is missing:
+    a checkout in a folder of mode 0700, as `mktemp -d` makes, is closed to it), each put
+    back as it was afterwards. Nothing is made readable that was not."""
+    changed: list[tuple[Path, int]] = []
+
+    def grant(path: Path) -> None:
+        for folder in [path, *path.parents]:
+            mode = folder.stat().st_mode
+            if folder.is_dir() and not mode & stat.S_IXOTH:
+                changed.append((folder, stat.S_IMODE(mode)))
+                folder.chmod(stat.S_IMODE(mode) | stat.S_IXOTH)
+
+    yield grant
+    for folder, mode in reversed(changed):
+        folder.chmod(mode)
+
+
 def ldm_for(uid: int, directory: Path) -> Path:
     """A directory with an `ldm` command that user `uid` can run: this checkout's ldm on
     the system's python3 (the test's own interpreter may lie where only root can reach)."""
     python = Path("/usr/bin/python3")
     if not python.exists():
         pytest.skip("needs /usr/bin/python3 to run ldm as another user")
-    paths = [Path(ldm.__file__).parent.parent, Path(pydantic.__file__).parent.parent]
+    paths = LDM_PATHS
     bin_dir = directory / "bin"
     bin_dir.mkdir(mode=0o755)
     command = bin_dir / "ldm"
@@ -79,7 +104,7 @@ def can_connect(url: str, user: str, password: str) -> bool:
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("writer", ["root", "a non-root user"])
 def test_adding_a_phone_keeps_every_other_account_and_the_broker_reads_the_file(
-    writer: str,
+    writer: str, reach: Callable[[Path], None]
 ) -> None:
     need_mosquitto()
     if os.geteuid() != 0:
@@ -92,6 +117,9 @@ def test_adding_a_phone_keeps_every_other_account_and_the_broker_reads_the_file(
         os.chown(work, uid, uid)
     passwd = work / "passwd"
     tools = {} if uid is None else {"LDM_BIN": str(ldm_for(uid, broker.directory))}
+    if uid is not None:  # the scripts and ldm of this checkout, wherever it was cloned
+        for path in (SECURITY, *LDM_PATHS):
+            reach(path)
     # the deployment's accounts, as the compose steps make them (no MODE given)
     script(
         "compose-accounts.sh",

@@ -128,17 +128,23 @@ class Deployment:
 
 
 def deploy(
-    factory: Callable[[], RunningBroker], *, backbone_is_service_broker: bool = False
+    factory: Callable[[], RunningBroker],
+    *,
+    backbone_is_service_broker: bool = False,
+    **core_options: Any,
 ) -> Deployment:
-    """Three brokers (or two, when the service broker doubles as the backbone)."""
+    """Three brokers (or two, when the service broker doubles as the backbone); both
+    cores take ``FAST`` and `core_options` (``CoreConfig`` fields)."""
     user = factory()
     service = factory()
     backbone = service if backbone_is_service_broker else factory()
     sniffers = [Sniffer(backbone.url, "backbone")]
     if backbone is not service:
         sniffers.append(Sniffer(service.url, "service"))
-    user_core = Core.create("user-edge", user.url, backbone.url, **FAST).start(timeout=5)
-    service_core = Core.create("svc-cluster", service.url, backbone.url, **FAST).start(timeout=5)
+    options = {**FAST, **core_options}
+    user_core = Core.create("user-edge", user.url, backbone.url, **options).start(timeout=5)
+    service_core = Core.create("svc-cluster", service.url, backbone.url, **options)
+    service_core.start(timeout=5)
     echo = EchoService()
     provider = echo_provider(service.url, echo, max_age=FAST["max_age"])
     return Deployment(user, backbone, service, user_core, service_core, echo, provider, sniffers)

@@ -32,11 +32,16 @@ from .test_faults import restart, works_again
 
 PARTICIPANTS = 6
 BURST = 15  # requests each participant sends at once, so that envelopes wait together
+# Each participant's input budget: two bursts and their warm-up within a fraction of a
+# second. At the default (100/s, burst 20), a burst that follows the last one's replies
+# within ~100 ms is refused in part, as it should be: what the tests here hold is the
+# batching, and the admission's rate is tests/ldm/test_intake.py's business.
+INPUT_BURST = 4 * BURST
 
 
 @pytest.fixture
 def deployment(broker_factory):
-    d = deploy(broker_factory)
+    d = deploy(broker_factory, burst=INPUT_BURST)
     yield d
     d.close()
 
@@ -52,14 +57,21 @@ def burst(d: Deployment, sessions: list[Any], tag: str) -> list[tuple[int, int, 
 
 
 def check_burst(d: Deployment, sent: list[tuple[int, int, Future[Any]]], tag: str) -> None:
-    """Each request has its own reply, and the service saw each participant's in order."""
+    """Each request has its own reply, the service saw each once, and each pseudonym's
+    in order. (The cores rotate every 0.5 s here: a burst that spans a change of
+    pseudonym reaches the service in two lanes, and the service core serves its lanes
+    round-robin, so the first input under the new pseudonym may overtake the last under
+    the old one; docs/ldm.md says so.)"""
     for i, n, future in sent:
         assert future.result(10) == {"echo": {"who": f"p{i}", "tag": tag, "n": n}}
     with d.echo.lock:
-        seen = [r.payload for r in d.echo.requests if r.payload.get("tag") == tag]
+        seen = [r for r in d.echo.requests if r.payload.get("tag") == tag]
     for i in range(PARTICIPANTS):
-        order = [p["n"] for p in seen if p["who"] == f"p{i}"]
-        assert order == list(range(BURST)), f"p{i} arrived out of order: {order}"
+        mine = [r for r in seen if r.payload["who"] == f"p{i}"]
+        assert sorted(r.payload["n"] for r in mine) == list(range(BURST)), f"p{i}: {mine}"
+        for pseudonym in {r.pseudonym for r in mine}:
+            order = [r.payload["n"] for r in mine if r.pseudonym == pseudonym]
+            assert order == sorted(order), f"p{i} arrived out of order: {order}"
 
 
 def open_sessions(d: Deployment) -> list[Any]:

@@ -368,7 +368,10 @@ def test_other_users_latency_under_a_flood_with_the_shipped_acl() -> None:
     assert report.flood_sent > 2000, "no flood"
     # structural: the flood is refused at intake, before it queues
     assert report.flooder_waiting <= 2 * report.settings["core_burst"]
-    admitted = report.settings["core_burst"] + report.settings["core_rate"] * 1.5
+    # At most a burst and the rate over the time the core can have been taking the flood
+    # are admitted (a bound in 1.5 s failed by one message when the broker delivered
+    # the flood over 2.5 s); the 100 are what may still be on the way when it is read.
+    admitted = report.settings["core_burst"] + report.settings["core_rate"] * report.flood_span
     assert report.core["rejected_rate"] >= report.flood_sent - admitted - 100
     # How much the flood slows the others (the old shared queue made the typical request
     # 10-20 times slower) is the bench's figure, printed above and quoted from `python -m

@@ -74,6 +74,10 @@ class FloodReport:
     flood_sent: int
     flood_rate: float
     """Messages per second the flooder achieved."""
+    flood_span: float
+    """Seconds from the flood phase's start to when ``core`` was read: the longest the
+    core's rate can have been admitting the flooder's messages (the broker may deliver
+    them after the flooder stopped, on a busy machine)."""
     flooder_waiting: int
     """The most of the flooder's messages waiting in the user core's intake at once
     (sampled every 10 ms): the flood is refused before it queues."""
@@ -267,16 +271,19 @@ def run_flood_bench(
             baseline = _figures([s for s in samples if s[0] < flood_start])
             flood = _figures([s for s in samples if s[0] >= flood_start])
             sent, achieved = results.get("flooder", (0, 0.0))
+            core = asdict(user_core.stats)
+            span = time.time() - flood_start
             return FloodReport(
                 baseline=baseline,
                 flood=flood,
                 ratio=flood.p99_ms / baseline.p99_ms if baseline.p99_ms > 0 else math.nan,
                 flood_sent=sent,
                 flood_rate=achieved,
+                flood_span=span,
                 flooder_waiting=waiting,
                 queued=queued,
                 load=(load, os.getloadavg()[0]),
-                core=asdict(user_core.stats),
+                core=core,
                 settings={
                     "participants": participants,
                     "hz": hz,

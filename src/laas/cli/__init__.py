@@ -10,9 +10,8 @@ and prints what it returns:
     traces     laas replay, laas scenario, laas plot
     evaluate   laas evaluate, laas privacy, laas liar, laas regions
     maps       laas map import, laas map info, laas map show
+    bridges    laas owntracks, laas gpsd, laas cam
     common     the flags several commands share
-
-The bridges' commands (owntracks, gpsd, cam) come from `laas.bridges.commands`.
 """
 
 from __future__ import annotations
@@ -21,8 +20,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from laas.cli import bench, demo, evaluate, maps, simulate, traces, worker
-from laas.cli.common import connection_args
+from laas.cli import bench, bridges, demo, evaluate, maps, simulate, traces, worker
 from laas.errors import LaasError
 from ldm import LdmError
 from ldm.ops.help import Parser, add_version
@@ -53,10 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     worker.add_asyncapi(sub)
     traces.add_scenario(sub)
     traces.add_plot(sub)
-
-    from laas.bridges.commands import add_bridge_commands  # owntracks, gpsd, cam
-
-    add_bridge_commands(sub, connection_args)
+    bridges.add_bridges(sub)
     return parser
 
 

@@ -7,6 +7,7 @@ import argparse
 import os
 import sys
 
+from laas.cli.bridges import device_account_args
 from laas.cli.common import (
     Subcommands,
     chosen_scenario,
@@ -83,8 +84,6 @@ def add_simulate(sub: Subcommands) -> None:
     p.add_argument("--speedup", type=float, default=1.0, help="faster than real time by")
     max_age_arg(p, "drop replies older than this, and fail a request after 2x this + 1 s")
     p.add_argument("--out", help="write the answers (JSON Lines) here; default stdout")
-    from laas.bridges.commands import device_account_args
-
     device_account_args(p, "road user")
     p.add_argument(
         "--prefix",

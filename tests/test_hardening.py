@@ -419,7 +419,7 @@ def test_a_flooding_participant_is_rate_limited_without_slowing_others() -> None
             futures = [flood.submit({"i": i}) for i in range(400)]
             # The calm participant, during the flood: every request answered, none
             # refused for the flooder's rate. How much the flood delays others is the
-            # figure of `python -m ldm.local.floodbench` (docs/security.md); a
+            # figure of `ldm bench flood` (docs/security.md); a
             # wall-clock bound here measured the machine.
             for i in range(20):
                 assert quiet.request({"calm": i}, timeout=10.0) == {"echo": {"calm": i}}

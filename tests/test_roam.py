@@ -29,7 +29,7 @@ from laas.map.mapgen import (
     track,
 )
 from laas.sim.replay import replay
-from laas.sim.roam import roam_scenario
+from laas.sim.roam import roam_scenario, scenario_or_roam
 from laas.sim.scenario import Lie, Scenario, Trace, UserPlan, simulate
 from laas.sim.trace import TraceLine
 
@@ -262,3 +262,14 @@ def test_replay_answers_a_roaming_trace_on_its_lanes(maps: dict[str, HdMap]) -> 
     )
     chance = 1.0 / 4.0  # four lanes on every element
     assert right / len(results) > max(0.8, 3.0 * chance)
+
+
+def test_scenario_or_roam_is_the_built_in_scenario_or_users_roaming_the_map() -> None:
+    """What `laas scenario`, `plot`, `regions` and `simulate` run: `--scenario`, or with
+    `--map` users roaming that map."""
+    builtin, hdmap = scenario_or_roam("messe-hamburg", seed=3)
+    assert builtin.name == "messe-hamburg" and hdmap.source == builtin.map
+    path = bundled_map("messe-hamburg")
+    roaming, hdmap = scenario_or_roam("messe-hamburg", path, seed=3, users=4, duration=30.0)
+    assert roaming.name == "roam-messe-hamburg-3" and len(roaming.users) == 4
+    assert roaming == roam_scenario(read_geojson_file(path), 3, users=4, duration=30.0)

@@ -6,6 +6,8 @@
     ldm passwd deploy/security/passwd car-17 bike-42=PASSWORD
     ldm keys new laas.key            # an Ed25519 identity; prints its public key
     ldm keys endorse anchor.key laas PUBLIC_KEY
+    ldm bench flood --phase 10       # others' latency while one participant floods
+    ldm bench core --participants 100 --rate 3   # the LDM's own cost, without a service
 
 A core's passwords come from environment variables (``--password-env``, default
 LDM_PASSWORD; ``--backbone-password-env``, default LDM_BACKBONE_PASSWORD), never from the
@@ -16,9 +18,11 @@ entry ``-``, from standard input (out of the process list).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import get_args
 
@@ -187,7 +191,38 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="give accounts FILE already holds the new password (default: keep theirs)",
     )
+    _add_bench(sub)
     return parser
+
+
+def _add_bench(sub: argparse._SubParsersAction[Parser]) -> None:
+    """`ldm bench flood` and `ldm bench core`: both start Mosquitto brokers of their own."""
+    bench = sub.add_parser(
+        "bench", help="benchmarks of the LDM alone, on Mosquitto brokers of their own"
+    )
+    kinds = bench.add_subparsers(dest="bench_command", required=True)
+    flood = kinds.add_parser(
+        "flood",
+        help="other participants' p99 latency before and during one participant's flood "
+        "(ldm.local.floodbench)",
+    )
+    flood.add_argument("--participants", type=int, default=4, help="calm users (default 4)")
+    flood.add_argument("--hz", type=float, default=5.0, help="requests/s per user (default 5)")
+    flood.add_argument("--rate", type=float, default=6700.0, help="flood msg/s (default 6700)")
+    flood.add_argument("--phase", type=float, default=10.0, help="seconds per phase (10)")
+    flood.add_argument("--no-acl", action="store_true", help="user broker without the ACL")
+    flood.add_argument("--core-rate", type=float, help="the user core's rate (default: its own)")
+    flood.add_argument("--core-burst", type=float, help="the user core's burst")
+    flood.add_argument("--json", action="store_true", help="machine-readable output")
+    core = kinds.add_parser(
+        "core",
+        help="the LDM's own cost: two cores between participants and an echo provider, "
+        "CPU per 1,000 inputs (ldm.local.corebench)",
+    )
+    core.add_argument("--participants", type=int, default=100, help="participants")
+    core.add_argument("--rate", type=float, default=3.0, help="inputs per participant per s")
+    core.add_argument("--duration", type=float, default=10.0, help="seconds of load")
+    core.add_argument("--json", action="store_true", help="machine-readable output")
 
 
 def _octal(text: str) -> int:
@@ -355,6 +390,34 @@ def _nats_cluster(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench(args: argparse.Namespace) -> int:
+    """`ldm bench flood|core`: the report on stdout; 1 if no request was answered."""
+    if args.bench_command == "flood":
+        from ldm.local import floodbench  # only this command needs it
+
+        settings: dict[str, float] = {}
+        if args.core_rate is not None:
+            settings["rate"] = args.core_rate
+        if args.core_burst is not None:
+            settings["burst"] = args.core_burst
+        flood = floodbench.run_flood_bench(
+            participants=args.participants,
+            hz=args.hz,
+            rate=args.rate,
+            phase=args.phase,
+            acl=not args.no_acl,
+            core_settings=settings,
+        )
+        text = json.dumps(asdict(flood), indent=1) if args.json else floodbench.format_report(flood)
+        print(text)
+        return 0 if flood.flood.answered else 1
+    from ldm.local import corebench
+
+    core = corebench.run_core_bench(args.participants, args.rate, args.duration)
+    print(json.dumps(core.as_dict(), indent=1) if args.json else corebench.format_report(core))
+    return 0 if core.answered else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `ldm` command line and return its exit status."""
     args = _parser().parse_args(argv)
@@ -371,6 +434,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _keys(args)
         if args.command == "nats-cluster":
             return _nats_cluster(args)
+        if args.command == "bench":
+            return _bench(args)
         if args.command == "broker":
             broker = EmbeddedBroker(args.host, args.port).start()
             print(f"ldm broker listening on {broker.url}", flush=True)

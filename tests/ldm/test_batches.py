@@ -5,7 +5,7 @@ Mosquitto), no mocks."""
 
 from __future__ import annotations
 
-import re
+import json
 import threading
 import time
 from concurrent.futures import Future
@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from paho.mqtt.client import topic_matches_sub as paho_matches
 
 from ldm import KeyPair, Provider, Request, ServiceSpec
+from ldm.cli import main as ldm_main
 from ldm.config import BrokerSettings
-from ldm.local import corebench
 from ldm.local.brokers import wait_for
 from ldm.local.pytest_plugin import need_mosquitto
 from ldm.security.crypto import aad
@@ -248,13 +248,17 @@ def test_topic_filters_match_as_paho_matches_them(
     assert matches(tuple(topic_filter), topic) == expected
 
 
-def test_the_core_bench_answers_every_input_and_counts_the_cpu() -> None:
+def test_the_core_bench_answers_every_input_and_counts_the_cpu(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`ldm bench core` in short, its JSON report read back."""
     need_mosquitto()
-    report = corebench.run(participants=5, rate=4.0, duration=1.5)
-    answered = re.search(r"answered (\d+)/(\d+)", report)
-    assert answered is not None, report
-    assert int(answered[1]) == int(answered[2]) > 0, report
-    cpu = re.search(r"cores ([\d.]+), brokers ([\d.]+), provider ([\d.]+)", report)
+    argv = ["bench", "core", "--participants", "5", "--rate", "4", "--duration", "1.5", "--json"]
+    assert ldm_main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["answered"] == report["sent"] > 0, report
     # A short run: the brokers and the provider may use less than one clock tick (10 ms),
-    # so only the cores' figure must be above 0 (the pattern takes no negative number).
-    assert cpu is not None and float(cpu[1]) > 0, report
+    # so only the cores' figure must be above 0.
+    cpu = report["cpu_per_1000"]
+    assert cpu.keys() == {"cores", "brokers", "provider"}, report
+    assert cpu["cores"] > 0 and min(cpu.values()) >= 0, report

@@ -7,6 +7,8 @@ import signal
 import subprocess
 import sys
 
+import pytest
+
 from ldm import Participant, Provider, ServiceSpec
 from ldm.local.brokers import wait_for
 from ldm.local.embedded import read_line
@@ -76,3 +78,18 @@ def test_ldm_core_rejects_a_bad_url() -> None:
         timeout=30,
     )
     assert result.returncode == 2 and "mqtt://HOST:PORT" in result.stderr  # errors: stderr
+
+
+@pytest.mark.parametrize("bench", ["flood", "core"])
+def test_ldm_bench_without_mosquitto_says_so_on_stderr(bench: str) -> None:
+    """`ldm bench flood|core` start Mosquitto brokers of their own (the runs themselves are
+    in tests/ldm/test_intake.py and tests/ldm/test_batches.py)."""
+    result = subprocess.run(
+        [*LDM, "bench", bench],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "LDM_MOSQUITTO": "/nonexistent/mosquitto"},
+        timeout=30,
+    )
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.startswith("ldm bench: mosquitto is not installed"), result.stderr

@@ -4,7 +4,7 @@ The fair queue and the core's intake are tested in-process first (deterministic)
 on real brokers, the embedded one and Mosquitto with the shipped ACL: a flooder is
 refused at intake while everyone else is answered, retained participant messages are
 cleared within the stated bound and never taken as input, and other users' latency
-under a flood (`ldm.local.floodbench`, short phases; its figures are printed, the assertions
+under a flood (`ldm bench flood`, short phases; its figures are printed, the assertions
 are structural and loose: a 2-core machine shared with other jobs cannot promise p99).
 """
 
@@ -20,10 +20,10 @@ from dataclasses import asdict
 import pytest
 
 from ldm import Core, KeyPair, Participant, Provider
+from ldm.cli import main as ldm_main
 from ldm.config import BrokerSettings
 from ldm.core.stats import CoreStats
 from ldm.local.brokers import MosquittoBroker, RunningBroker, mosquitto_acl, start_broker, wait_for
-from ldm.local.floodbench import format_report, run_flood_bench
 from ldm.local.pytest_plugin import need_mosquitto
 from ldm.transport.dispatch import Dispatcher
 from ldm.transport.intake import FairQueue
@@ -270,7 +270,7 @@ def test_a_flooder_is_refused_at_intake_and_others_are_all_answered(
         start = time.monotonic()
         assert wait_for(lambda: core.stats.rejected_rate > 500, 10), "no flood"
         # while the flood goes on, each honest request is answered (how fast belongs to
-        # `python -m ldm.local.floodbench`: on a loaded machine the embedded broker, which
+        # `ldm bench flood`: on a loaded machine the embedded broker, which
         # carries the flood on the same cores, took more than 3 s once)
         for i in range(5):
             assert a.request({"a": i}, timeout=10.0) == {"echo": {"a": i}}
@@ -357,24 +357,30 @@ def test_retained_participant_messages_are_cleared_on_mosquitto_with_the_acl() -
 
 
 @pytest.mark.mosquitto
-def test_other_users_latency_under_a_flood_with_the_shipped_acl() -> None:
-    """The flood bench in short: baseline, then a 3,000 msg/s flood, in one run: every
-    honest request answered in both phases, the flood refused at intake."""
+def test_other_users_latency_under_a_flood_with_the_shipped_acl(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The flood bench in short (`ldm bench flood`, its JSON report read back): baseline,
+    then a 3,000 msg/s flood, in one run: every honest request answered in both phases,
+    the flood refused at intake."""
     need_mosquitto()
-    report = run_flood_bench(participants=3, hz=10.0, rate=3000.0, phase=1.5)
-    print(format_report(report))
-    base, flood = report.baseline, report.flood
-    assert base.answered == base.sent and flood.answered == flood.sent, format_report(report)
-    assert report.flood_sent > 2000, "no flood"
+    argv = ["bench", "flood", "--participants", "3", "--hz", "10", "--rate", "3000"]
+    assert ldm_main([*argv, "--phase", "1.5", "--json"]) == 0
+    out = capsys.readouterr().out
+    print(out)
+    report = json.loads(out)
+    base, flood, settings = report["baseline"], report["flood"], report["settings"]
+    assert base["answered"] == base["sent"] and flood["answered"] == flood["sent"], out
+    assert report["flood_sent"] > 2000, "no flood"
     # structural: the flood is refused at intake, before it queues
-    assert report.flooder_waiting <= 2 * report.settings["core_burst"]
+    assert report["flooder_waiting"] <= 2 * settings["core_burst"]
     # At most a burst and the rate over the time the core can have been taking the flood
     # are admitted (a bound in 1.5 s failed by one message when the broker delivered
     # the flood over 2.5 s); the 100 are what may still be on the way when it is read.
-    admitted = report.settings["core_burst"] + report.settings["core_rate"] * report.flood_span
-    assert report.core["rejected_rate"] >= report.flood_sent - admitted - 100
+    admitted = settings["core_burst"] + settings["core_rate"] * report["flood_span"]
+    assert report["core"]["rejected_rate"] >= report["flood_sent"] - admitted - 100
     # How much the flood slows the others (the old shared queue made the typical request
-    # 10-20 times slower) is the bench's figure, printed above and quoted from `python -m
-    # ldm.local.floodbench` in docs/security.md: a latency bound here failed on a machine
+    # 10-20 times slower) is the bench's figure, printed above and quoted from `ldm bench
+    # flood` in docs/security.md: a latency bound here failed on a machine
     # at load 8 (39 ms against 6.6 ms). What keeps the others fast is checked above: the
     # flood is refused at intake and never queues past the flooder's burst.

@@ -63,6 +63,7 @@ __all__ = [
     "sigma_vel_for",
     "simulate_case",
     "suite_plots",
+    "suite_report",
     "summarize",
     "worst_run",
 ]
@@ -347,6 +348,11 @@ class SuiteRow:
     raw_aed: float
     methods: dict[str, MethodScore] = field(default_factory=dict)
 
+    @property
+    def failed(self) -> bool:
+        """True when a method raised on this run (its score says what, in ``error``)."""
+        return any(m.error is not None for m in self.methods.values())
+
     def as_dict(self) -> dict[str, object]:
         return asdict(self)
 
@@ -629,6 +635,17 @@ def _integrity(summaries: Sequence[Summary]) -> list[str]:
             lines.extend("    " + line for line in s.integrity["default"].reliability().split("\n"))
     lines.append("")
     return lines
+
+
+def suite_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float) -> dict[str, object]:
+    """What `laas evaluate --suite --json` prints: the suite, its time, the summaries and
+    every run."""
+    return {
+        "suite": suite.name,
+        "seconds": seconds,
+        "summaries": [s.as_dict() for s in summarize(rows)],
+        "runs": [r.as_dict() for r in rows],
+    }
 
 
 def format_report(suite: Suite, rows: Sequence[SuiteRow], seconds: float | None = None) -> str:

@@ -29,7 +29,7 @@ from laas.map.hdmap import HdMap
 from laas.map.mapgen import LaneSpec, local_to_lonlat, road_features
 from laas.models import GpsMeasurement
 
-__all__ = ["FilterRow", "bench_filter", "format_filter_table"]
+__all__ = ["GROUP_SIZES", "FilterRow", "bench_filter", "format_filter_table", "group_sizes"]
 
 _LANES = (
     LaneSpec("driving", 3.25),
@@ -37,6 +37,15 @@ _LANES = (
     LaneSpec("parking", 2.2),
     LaneSpec("bicycle", 1.8),
 )
+
+
+GROUP_SIZES = (1, 2, 3, 4, 6, 8, 10, 20, 50, 100, 200)
+"""The users in a segment `laas bench-filter` times, up to its ``--max-users``."""
+
+
+def group_sizes(max_users: int) -> list[int]:
+    """The sizes of `GROUP_SIZES` up to `max_users`."""
+    return [n for n in GROUP_SIZES if n <= max_users]
 
 
 @dataclass(frozen=True)

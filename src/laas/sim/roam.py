@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from laas.errors import ConfigError
+from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap, Lane
 from laas.sim.scenario import (
     PATH_SUCCESSOR_GAP,
@@ -55,9 +56,10 @@ from laas.sim.scenario import (
     UserPlan,
     Way,
     distance_driven,
+    get_scenario,
 )
 
-__all__ = ["KINDS", "roam_scenario"]
+__all__ = ["KINDS", "roam_scenario", "scenario_or_roam"]
 
 KINDS: dict[str, str] = {"car": "driving", "bicycle": "bicycle", "pedestrian": "sidewalk"}
 """The kinds of road user and the lane type each drives."""
@@ -189,6 +191,22 @@ def roam_scenario(
         rate=rate,
         errors=errors if errors is not None else ErrorModel(),
     )
+
+
+def scenario_or_roam(
+    scenario: str,
+    map_path: str | Path | None = None,
+    seed: int = 0,
+    users: int = 10,
+    duration: float = 120.0,
+) -> tuple[Scenario, HdMap]:
+    """The built-in scenario `scenario` and its map; or, given `map_path`, `users` road
+    users roaming that lane map (GeoJSON) for `duration` s, drawn with `seed`."""
+    if map_path is not None:
+        hdmap = read_geojson_file(map_path)
+        return roam_scenario(hdmap, seed, users=users, duration=duration), hdmap
+    chosen = get_scenario(scenario)
+    return chosen, read_geojson_file(chosen.map)
 
 
 def _draw_user(

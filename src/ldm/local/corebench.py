@@ -1,6 +1,6 @@
 """The LDM's own cost: two cores between participants and an echo provider.
 
-    python -m ldm.local.corebench --participants 100 --rate 3 --duration 10
+    ldm bench core --participants 100 --rate 3 --duration 10
 
 Three Mosquitto brokers (user, backbone, service), the user core and the service core
 in this process, an echo provider in a child process (its reply is ``{"ok": 1}``:
@@ -13,20 +13,21 @@ the LDM's part of `laas bench` can be measured without the positioning engine.
 
 from __future__ import annotations
 
-import argparse
+import math
 import multiprocessing as mp
 import os
 import statistics
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, wait
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ldm.core import Core
-from ldm.local.brokers import MosquittoBroker, find_mosquitto
+from ldm.local.brokers import MosquittoBroker
 
-__all__ = ["main", "run"]
+__all__ = ["CoreBenchReport", "format_report", "run_core_bench"]
 
 _TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
@@ -86,10 +87,40 @@ def _participants(url: str, n: int, rate: float, seconds: float, out: Any, go: A
         p.stop()
 
 
-def run(participants: int, rate: float, duration: float) -> str:
-    """Run the load; the report as text."""
-    if find_mosquitto() is None:
-        raise SystemExit("corebench: mosquitto is not installed (apt-get install mosquitto)")
+@dataclass(frozen=True)
+class CoreBenchReport:
+    """What one run of the core bench measured."""
+
+    participants: int
+    rate: float
+    duration: float
+    sent: int
+    answered: int
+    p50_ms: float
+    """Round trip of the answered inputs, milliseconds."""
+    p99_ms: float
+    cpu_per_1000: dict[str, float]
+    """CPU seconds per 1,000 inputs sent: ``cores`` (this process), ``brokers``,
+    ``provider``."""
+    batched: int
+    """Envelopes the two cores forwarded in batches."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "participants": self.participants,
+            "rate": self.rate,
+            "duration": self.duration,
+            "sent": self.sent,
+            "answered": self.answered,
+            "p50_ms": self.p50_ms,
+            "p99_ms": self.p99_ms,
+            "cpu_per_1000": dict(self.cpu_per_1000),
+            "batched": self.batched,
+        }
+
+
+def run_core_bench(participants: int, rate: float, duration: float) -> CoreBenchReport:
+    """Run the load (see the module docstring); `ConnectError` without Mosquitto."""
     brokers = [MosquittoBroker().start() for _ in range(3)]
     user, backbone, service = (b.url for b in brokers)
     ctx = mp.get_context("spawn")
@@ -124,29 +155,31 @@ def run(participants: int, rate: float, duration: float) -> str:
         for broker in brokers:
             broker.stop()
     ms = sorted(1000 * t for t in trips)
-    p99 = ms[int(0.99 * (len(ms) - 1))] if ms else float("nan")
-    k = 1000.0 / sent if sent else float("nan")
-    return "\n".join(
-        [
-            f"corebench: {participants} participants at {rate:g} Hz for {duration:g} s, all on "
-            "the same tick, through 3 Mosquitto brokers, 2 cores and an echo provider",
-            f"answered {len(trips)}/{sent}; round trip p50 "
-            f"{statistics.median(ms) if ms else float('nan'):.2f} ms, p99 {p99:.2f} ms",
-            "CPU s per 1,000 inputs: "
-            + ", ".join(f"{name} {seconds * k:.3f}" for name, seconds in used.items()),
-            f"envelopes forwarded in batches by the cores: {batched}",
-        ]
+    k = 1000.0 / sent if sent else math.nan
+    return CoreBenchReport(
+        participants=participants,
+        rate=rate,
+        duration=duration,
+        sent=sent,
+        answered=len(trips),
+        p50_ms=statistics.median(ms) if ms else math.nan,
+        p99_ms=ms[int(0.99 * (len(ms) - 1))] if ms else math.nan,
+        cpu_per_1000={name: seconds * k for name, seconds in used.items()},
+        batched=batched,
     )
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m ldm.local.corebench", description=__doc__)
-    parser.add_argument("--participants", type=int, default=100)
-    parser.add_argument("--rate", type=float, default=3.0, help="inputs per participant per s")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds of load")
-    a = parser.parse_args(argv)
-    print(run(a.participants, a.rate, a.duration))
-
-
-if __name__ == "__main__":
-    main()
+def format_report(report: CoreBenchReport) -> str:
+    """The report as text, four lines."""
+    r = report
+    return "\n".join(
+        [
+            f"corebench: {r.participants} participants at {r.rate:g} Hz for {r.duration:g} s, "
+            "all on the same tick, through 3 Mosquitto brokers, 2 cores and an echo provider",
+            f"answered {r.answered}/{r.sent}; round trip p50 {r.p50_ms:.2f} ms, "
+            f"p99 {r.p99_ms:.2f} ms",
+            "CPU s per 1,000 inputs: "
+            + ", ".join(f"{name} {seconds:.3f}" for name, seconds in r.cpu_per_1000.items()),
+            f"envelopes forwarded in batches by the cores: {r.batched}",
+        ]
+    )

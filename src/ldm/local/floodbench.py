@@ -1,4 +1,4 @@
-"""Other participants' latency while one participant floods: ``python -m ldm.local.floodbench``.
+"""Other participants' latency while one participant floods: ``ldm bench flood``.
 
     users process: N participants at HZ --+
                                           +--> user broker <- user core -> backbone broker
@@ -26,8 +26,6 @@ Kept out of the test suite (it takes ``2 * phase`` seconds plus set-up);
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import multiprocessing as mp
 import os
@@ -45,7 +43,7 @@ from ldm.local.brokers import MosquittoBroker, mosquitto_acl, wait_for
 from ldm.provider.provider import Provider, Request
 from ldm.wire.messages import Envelope, ServiceSpec
 
-__all__ = ["FloodReport", "format_report", "main", "run_flood_bench"]
+__all__ = ["FloodReport", "PhaseFigures", "format_report", "run_flood_bench"]
 
 _CORE_USER = "ldm-core"
 _PROVIDER_USER = "svc-echo"
@@ -326,38 +324,3 @@ def format_report(report: FloodReport) -> str:
     keys = ("forwarded_in", "rejected_rate", "notices_suppressed", "dropped_overload")
     lines.append("user core: " + ", ".join(f"{k} {c.get(k, 0):,}" for k in keys))
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m ldm.local.floodbench",
-        description="Other participants' p99 latency before and during one participant's flood.",
-    )
-    parser.add_argument("--participants", type=int, default=4, help="calm users (default 4)")
-    parser.add_argument("--hz", type=float, default=5.0, help="requests/s per user (default 5)")
-    parser.add_argument("--rate", type=float, default=6700.0, help="flood msg/s (default 6700)")
-    parser.add_argument("--phase", type=float, default=10.0, help="seconds per phase (10)")
-    parser.add_argument("--no-acl", action="store_true", help="user broker without the ACL")
-    parser.add_argument("--core-rate", type=float, help="the user core's rate (default: its own)")
-    parser.add_argument("--core-burst", type=float, help="the user core's burst")
-    parser.add_argument("--json", action="store_true", help="machine-readable output")
-    a = parser.parse_args(argv)
-    core: dict[str, float] = {}
-    if a.core_rate is not None:
-        core["rate"] = a.core_rate
-    if a.core_burst is not None:
-        core["burst"] = a.core_burst
-    report = run_flood_bench(
-        participants=a.participants,
-        hz=a.hz,
-        rate=a.rate,
-        phase=a.phase,
-        acl=not a.no_acl,
-        core_settings=core,
-    )
-    print(json.dumps(asdict(report), indent=1) if a.json else format_report(report))
-    return 0 if report.flood.answered else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

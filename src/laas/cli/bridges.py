@@ -1,4 +1,5 @@
-"""The bridges' subcommands of `laas`: ``owntracks``, ``gpsd`` and ``cam`` (thin faces)."""
+"""The bridges' commands: `laas owntracks`, `laas gpsd` and `laas cam` (`laas.bridges`),
+and the per-device account flags `laas simulate` shares with them."""
 
 from __future__ import annotations
 
@@ -8,12 +9,13 @@ import os
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from laas.bridges.metrics import watch_bridge
 from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
+from laas.cli.common import Subcommands, connection_args
 from laas.errors import ConfigError
 from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings
@@ -24,9 +26,7 @@ from ldm.ops.process import broker_settings, operations_args, start_metrics, wai
 if TYPE_CHECKING:
     from laas.map.hdmap import HdMap
 
-__all__ = ["add_bridge_commands"]
-
-ConnectionArgs = Callable[[argparse.ArgumentParser, str], None]
+__all__ = ["add_bridges", "device_account_args"]
 
 
 def _logging(a: argparse.Namespace) -> None:
@@ -208,8 +208,8 @@ def _cmd_gpsd(a: argparse.Namespace) -> int:
     return 0
 
 
-def add_bridge_commands(sub: Any, connection_args: ConnectionArgs) -> None:
-    """Add ``owntracks``, ``gpsd`` and ``cam`` to `laas`'s subcommands."""
+def add_bridges(sub: Subcommands) -> None:
+    """`laas owntracks`, `laas gpsd` and `laas cam`."""
     p = sub.add_parser("owntracks", help="OwnTracks phones as participants; answers as friends")
     connection_args(p, "LAAS")
     p.add_argument("--prefix", default="ot.", help="device client ids: PREFIX + user.device")

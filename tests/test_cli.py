@@ -55,6 +55,18 @@ def test_replay_answers_good_lines_and_names_bad_ones(
     assert "10 answered, 3 lines skipped" in err
 
 
+def test_replay_takes_the_folder_laas_scenario_writes_and_names_one_without_a_trace(
+    files: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    map_path, trace_path = files
+    assert main(["replay", "--map", str(map_path), str(trace_path.parent)]) == 0
+    assert "10 answered, 3 lines skipped" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["replay", "--map", str(map_path), str(empty)]) == 2
+    assert "is a folder without a trace.jsonl" in capsys.readouterr().err
+
+
 def test_replay_reads_stdin_in_a_real_process(files: tuple[Path, Path]) -> None:
     map_path, trace_path = files
     done = subprocess.run(

@@ -33,6 +33,13 @@ def _cmd_replay(a: argparse.Namespace) -> int:
         errors += 1
         print(f"laas replay: {error}", file=sys.stderr)
 
+    if a.trace != "-" and Path(a.trace).is_dir():  # the folder `laas scenario` writes
+        inside = Path(a.trace) / "trace.jsonl"
+        if not inside.is_file():
+            raise TraceError(
+                f"{a.trace} is a folder without a trace.jsonl: give the trace file itself"
+            )
+        a.trace = str(inside)
     source = sys.stdin if a.trace == "-" else open(a.trace, encoding="utf-8")  # noqa: SIM115
     out = sys.stdout if a.out is None else open(a.out, "w", encoding="utf-8")  # noqa: SIM115
     live = source is sys.stdin and is_live(source.fileno())  # a pipe: answer what is ready
@@ -75,7 +82,11 @@ def add_replay(sub: Subcommands) -> None:
     """`laas replay`."""
     p = sub.add_parser("replay", help="correct a recorded trace (JSON Lines) offline")
     p.add_argument("--map", required=True, help="GeoJSON lane map")
-    p.add_argument("trace", help="trace file, JSON Lines with a `user` field; - for stdin")
+    p.add_argument(
+        "trace",
+        help="trace file, JSON Lines with a `user` field (or the folder `laas scenario` wrote); "
+        "- for stdin",
+    )
     p.add_argument("--out", help="output file (default: stdout)")
     engine_args(p)
     p.set_defaults(func=_cmd_replay)

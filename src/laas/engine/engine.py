@@ -27,6 +27,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
+from laas.engine.elements import element_share
 from laas.engine.cooperative import CooperativeLaneFilter
 from laas.engine.handover import AreaState, UserState
 from laas.engine.lanefilter import LaneFilter, Placement
@@ -179,6 +180,7 @@ class Engine:
         segments = self.map.locate_many(q, c.max_map_distance)
         work: list[tuple[str, Track, Segment, float]] = []
         at: list[int] = []
+        k_of = {k: j for j, k in enumerate(live)}  # a fix's row of q
         for j, k in enumerate(live):
             user, measurement = fixes[k]
             track = cast(Track, tracks[k])
@@ -196,7 +198,7 @@ class Engine:
         for k, (_, track, segment, _), placement in zip(
             at, work, self._lanes.step_many(work), strict=True
         ):
-            out[k] = self._answer(fixes[k][1], segment, placement, track)
+            out[k] = self._answer(fixes[k][1], segment, placement, track, q[k_of[k]])
         return out
 
     def _plausible(
@@ -319,10 +321,16 @@ class Engine:
     # -- answers ---------------------------------------------------------------------------
 
     def _answer(
-        self, measurement: GpsMeasurement, segment: Segment, placed: Placement, track: Track
+        self,
+        measurement: GpsMeasurement,
+        segment: Segment,
+        placed: Placement,
+        track: Track,
+        q: np.ndarray,
     ) -> _Answer:
         """The placed position with its 1-sigma across (from the lane filter) and along
-        the road: along = sqrt(t' (P_track + P_b) t + s_rx^2)."""
+        the road: along = sqrt(t' (P_track + P_b) t + s_rx^2). `q` is the corrected
+        position the element was located under."""
         point = placed.point
         tangent = placed.tangent
         if tangent is None:
@@ -340,6 +348,17 @@ class Engine:
             if station is None:
                 station, _ = segment.frame(float(point[0]), float(point[1]))
             probability *= self._on_element(segment, station, along)
+            normal = np.array([tangent[1], -tangent[0]])
+            var_cross = float(normal @ cov @ normal) + lasting
+            probability *= element_share(
+                self.map,
+                segment,
+                q,
+                var_cross,
+                track.velocity,
+                track.last_fix.speed,
+                self.config.sigma_vel**2,
+            )
             if self.config.calibrated:
                 probability = calibrate(probability)
         return _Answer(

@@ -23,7 +23,8 @@ drives along e*.
 Elements joined to e* at a seam (its successors and predecessors) are the business of
 `Engine._on_element`, which weighs the station along the road; they are left out here.
 An element with no other element within `SIDE_MARGIN` costs nothing (the usual case on
-a road of one carriageway: `HdMap.beside`).
+a road of one carriageway: `HdMap.beside`), and one whose neighbours lie further than
+`REACH` sigma from q costs one array query (`HdMap.beside_near`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,11 @@ import numpy as np
 from laas.engine.transition import motion_fit
 from laas.map.hdmap import HdMap, Segment
 
-__all__ = ["LANE_CHANGE_SPEED", "element_share"]
+__all__ = ["LANE_CHANGE_SPEED", "REACH", "element_share"]
+
+REACH = 4.0
+"""Sigmas across the road beyond which an element beside takes no share: its lanes'
+likelihood there is below exp(-8) = 0.03 % of a lane's own."""
 
 LANE_CHANGE_SPEED = 1.2
 """m/s, the spread of a user's velocity across its own element: a lane change moves
@@ -53,10 +58,12 @@ def element_share(
 ) -> float:
     """P(the user is on `segment` rather than on an element beside it), see the module
     docstring; 1.0 where no element lies beside it."""
-    others = hdmap.beside(segment.id)
+    x, y = float(q[0]), float(q[1])
+    # an element whose surface is further than REACH sigma from q adds less than
+    # exp(-REACH^2 / 2) of a lane's own likelihood: left out
+    others = hdmap.beside_near(segment.id, x, y, REACH * math.sqrt(max(var_cross, 0.0)))
     if not others:
         return 1.0
-    x, y = float(q[0]), float(q[1])
     var_perp = var_velocity + LANE_CHANGE_SPEED**2
     own = _lanes_likelihood(segment, x, y, var_cross, velocity, speed, var_perp, inside=False)
     rest = 0.0

@@ -27,8 +27,8 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.calibration import calibrate
 from laas.engine.common_error import CommonError
-from laas.engine.elements import element_share
 from laas.engine.cooperative import CooperativeLaneFilter
+from laas.engine.elements import element_share
 from laas.engine.handover import AreaState, UserState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.paper import PaperLaneFilter

@@ -30,12 +30,12 @@ from laas.models import LaneType
 __all__ = [
     "DIRECTIONS",
     "LANE_TYPES",
+    "SIDE_MARGIN",
     "Direction",
     "HdMap",
     "Lane",
     "LaneType",
     "Prepared",
-    "SIDE_MARGIN",
     "Segment",
     "prepare",
 ]
@@ -452,6 +452,7 @@ class HdMap:
         self._index = {seg.id: k for k, seg in enumerate(self._sorted)}
         self._stack: FrameStack | None = None  # every frame, for frame_many; on first use
         self._beside: dict[str, tuple[Segment, ...]] = {}  # `beside`, on first use
+        self._beside_areas: dict[str, npt.NDArray[np.object_]] = {}  # their surfaces
         b = shapely.bounds(np.array([seg.area for seg in segs], object))
         self._bounds = (
             float(b[:, 0].min()),
@@ -480,7 +481,17 @@ class HdMap:
             idx = self._tree.query(seg.area, predicate="dwithin", distance=SIDE_MARGIN)
             near = (self._sorted[int(i)] for i in sorted(idx))
             found = self._beside[segment] = tuple(e for e in near if e.id not in joined)
+            self._beside_areas[segment] = np.array([e.area for e in found], object)
         return found
+
+    def beside_near(self, segment: str, x: float, y: float, distance: float) -> list[Segment]:
+        """The elements `beside` `segment` whose surface lies within `distance` of the
+        point (x, y), in the order of `beside`: one array query, not one per element."""
+        others = self.beside(segment)
+        if not others:
+            return []
+        near = shapely.dwithin(self._beside_areas[segment], Point(x, y), distance)
+        return [e for e, ok in zip(others, near, strict=True) if ok]
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:

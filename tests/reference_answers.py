@@ -1,7 +1,8 @@
 """The engine's answers recorded, to test that speed work changes none.
 
-Speed work (issue 13) must keep every answer: the same lane, the position and both
-accuracies (`accuracy_cross`, `accuracy_along`) within 1e-6 m. This module names the
+Speed work must keep every answer: the same lane, and the position, both accuracies
+(`accuracy_cross`, `accuracy_along`) and the lane's probability within 1e-6 (m, or of
+probability). This module names the
 recorded cases, answers them with the engine as it is now, one fix at a time
 (`Engine.process`) and in batches as the live worker takes them (`laas.sim.batches`,
 `Engine.process_many`), and writes or compares the record in
@@ -109,6 +110,7 @@ def arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, n
     n = len(answers)
     xy = np.full((n, 2), np.nan)
     acc = np.full((n, 2), np.nan)
+    prob = np.full(n, np.nan)
     lane = np.full(n, "", dtype=object)
     for i, a in enumerate(answers):
         if a is None:
@@ -116,14 +118,15 @@ def arrays(hdmap: HdMap, answers: list[CorrectedPosition | None]) -> dict[str, n
             continue
         xy[i] = hdmap.projection.to_utm(a.longitude, a.latitude)
         acc[i] = (a.accuracy_cross, a.accuracy_along)
+        prob[i] = a.probability
         lane[i] = f"{a.segment}:{a.lane}"
-    return {"xy": xy, "acc": acc, "lane": lane.astype(str)}
+    return {"xy": xy, "acc": acc, "prob": prob, "lane": lane.astype(str)}
 
 
 PATHS = ("one", "batched")
 """How a record's answers were given to the engine: one fix at a time, or in batches
 as the live worker takes them (`answer_trace`'s default `max_batch`)."""
-_FIELDS = ("xy", "acc", "lane")
+_FIELDS = ("xy", "acc", "prob", "lane")
 
 
 def answer_both(case: Case) -> dict[str, dict[str, np.ndarray]]:
@@ -132,13 +135,14 @@ def answer_both(case: Case) -> dict[str, dict[str, np.ndarray]]:
 
 
 def differences(now: dict[str, np.ndarray], record: dict[str, np.ndarray]) -> tuple[int, float]:
-    """(answers on another lane, largest difference of a position or an accuracy in m)
-    of `now` against `record`; inf when they are not answers to the same fixes."""
+    """(answers on another lane, largest difference of a position or an accuracy in m,
+    or of a probability) of `now` against `record`; inf when they are not answers to the
+    same fixes."""
     if now["lane"].shape != record["lane"].shape:  # another trace: the case itself changed
         return len(now["lane"]), float("inf")
     other = int(np.sum(now["lane"] != record["lane"]))
     worst = 0.0
-    for field in ("xy", "acc"):
+    for field in ("xy", "acc", "prob"):
         if not np.array_equal(np.isnan(now[field]), np.isnan(record[field])):
             return other, float("inf")
         diff = np.abs(now[field] - record[field])
@@ -147,7 +151,7 @@ def differences(now: dict[str, np.ndarray], record: dict[str, np.ndarray]) -> tu
 
 
 def load_record() -> dict[str, dict[str, dict[str, np.ndarray]]]:
-    """Case name -> path ("one", "batched") -> field ("xy", "acc", "lane") -> array."""
+    """Case name -> path ("one", "batched") -> field (`_FIELDS`) -> array."""
     with np.load(RECORD) as data:
         names = sorted({k.split("|", 1)[0] for k in data.files})
         return {n: {p: {f: data[f"{n}|{p}|{f}"] for f in _FIELDS} for p in PATHS} for n in names}

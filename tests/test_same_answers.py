@@ -2,9 +2,9 @@
 
 One at a time (`Engine.process`) and in batches as the live worker takes them
 (`laas.sim.batches`, `Engine.process_many`), the engine gives its record
-(`tests/reference_answers`) exactly: the same lanes, positions and both accuracies
-(`accuracy_cross`, `accuracy_along`) within 1e-6 m. In batches the common error takes
-one measurement update per batch, so a user's answer also sees the evidence of the
+(`tests/reference_answers`) exactly: the same lanes, and positions, both accuracies
+(`accuracy_cross`, `accuracy_along`) and probabilities within 1e-6. In batches the common
+error takes one measurement update per batch, so a user's answer also sees the evidence of the
 fixes that came with it: the two paths may differ, but batched must stay as good. The
 bounds, on the recorded cases (the first four of the `ci` suite's dev seeds of each
 random-road family, both bundled scenarios, two seeds of each real-map family):
@@ -151,7 +151,7 @@ def _check(r: Answered) -> np.ndarray:
         other, worst = differences(got, rec[path])
         assert other == 0 and worst <= TOLERANCE_M, (
             f"{r.name} {how}: {other} answers on other lanes than recorded, worst {worst:.2e} m"
-            " (position or accuracy)"
+            " (position, accuracy or probability)"
         )
     if r.mode == "paper":  # no common error: batches change nothing
         other, worst = differences(r.batched, r.now)

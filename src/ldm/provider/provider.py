@@ -226,8 +226,8 @@ class Provider(Dispatcher[Item]):
         # Subscribed at QoS 2 unless set, input arrives at the QoS the core sent it with.
         qos = 2 if config.data_qos is None else config.data_qos
         self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
-        self._batch_topic = topics.provider_input_batch(spec.name)
-        self.transport.subscribe(self._batch_topic, qos)
+        self.transport.subscribe(topics.provider_input_batch(spec.name), qos)
+        self._reply_topic = topics.provider_reply_batch(spec.name)
         self.cluster = config.cluster
         """The core's name every announcement is signed for (`Announcement.cluster`);
         None until the cluster's service list names it."""
@@ -559,8 +559,7 @@ class Provider(Dispatcher[Item]):
                 return None
             # A retry (or a broker's duplicate) of an input answered lately: the same
             # reply again, so a reply lost on the way costs the participant one retry.
-            batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, pseudonym, again[0], qos)
+            self._outbox.add(self.transport, self._reply_topic, pseudonym, again[0], qos)
             self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
@@ -600,8 +599,7 @@ class Provider(Dispatcher[Item]):
         if now:
             self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
         else:
-            batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, pseudonym, sealed, route.qos)
+            self._outbox.add(self.transport, self._reply_topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1
             if route.peer is not None:

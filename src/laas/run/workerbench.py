@@ -44,8 +44,8 @@ from laas.sim.scenario import simulate_with
 from laas.worker.service import LaasService, WorkerConfig, service_spec
 from ldm import KeyPair, Provider
 from ldm.security.crypto import aad
-from ldm.transport import Message
 from ldm.wire import topics
+from ldm.wire.batch import Entry
 from ldm.wire.messages import Envelope
 
 __all__ = ["WorkerBenchReport", "bench_worker", "format_worker_report"]
@@ -120,7 +120,7 @@ class _Lane:
         self.t_open = self.t_handle = self.t_seal = 0.0
         self.answered = 0
 
-    def feed(self, messages: list[Message], batch: int) -> None:
+    def feed(self, messages: list[Entry], batch: int) -> None:
         for k in range(0, len(messages), batch):
             t0 = time.perf_counter()
             opened = [o for o in map(self.provider.open, messages[k : k + batch]) if o]
@@ -198,7 +198,7 @@ def bench_worker(
     shift = time.time() * 1000.0 - trace.fixes[0].measurement.timestamp
     sessions: dict[str, tuple[str, str]] = {}  # user -> (pseudonym, ephemeral public key)
     ciphers = {}
-    messages: list[Message] = []
+    messages: list[Entry] = []  # as the provider queues them: each topic parsed on arrival
     for fix in trace.fixes:
         if fix.user not in sessions:
             pair = KeyPair()
@@ -209,8 +209,8 @@ def bench_worker(
         c, t = secrets.token_hex(8), time.time()
         sealed = ciphers[fix.user].seal(m.model_dump_json().encode(), aad(c, t))
         env = Envelope(c=c, t=t, k=public, d=sealed)
-        topic = topics.provider_input(service_spec().name, pseudonym)
-        messages.append(Message(topic, env.encode(), 1, False, "bench"))
+        topic = topics.parse(topics.provider_input(service_spec().name, pseudonym))
+        messages.append(Entry(topic, pseudonym, env.encode(), 1, "bench"))
 
     rng = np.random.default_rng(seed)
     t_filterpy = 0.0

@@ -117,11 +117,13 @@ def tag_secret(env: Envelope, secrets: tuple[bytes, ...] | list[bytes]) -> bytes
 @dataclass(frozen=True, slots=True)
 class Admitted(Message):
     """A participant message taken at intake (`Core.sink`), with what intake decided:
-    ``charge``: the budget that paid for it; ``refused``: over the rate, only its
-    ``rejected`` notice is left to send (the notice bucket already paid);
-    ``envelope``: the input decoded, its tag checked with ``secret`` (the session's
-    secret when intake took it), so the dispatch thread neither decodes nor checks it again."""
+    ``parsed``: its topic, parsed once at intake; ``charge``: the budget that paid for
+    it; ``refused``: over the rate, only its ``rejected`` notice is left to send (the
+    notice bucket already paid); ``envelope``: the input decoded, its tag checked with
+    ``secret`` (the session's secret when intake took it), so the dispatch thread
+    neither parses the topic, nor decodes nor checks the input again."""
 
+    parsed: Topic
     charge: Charge = "other"
     refused: bool = False
     envelope: Envelope | None = None
@@ -229,10 +231,11 @@ class Admission:
             msg.qos,
             False,
             msg.source,
-            charge,
-            not admitted,
-            envelope if admitted else None,
-            secret,
+            parsed=topic,
+            charge=charge,
+            refused=not admitted,
+            envelope=envelope if admitted else None,
+            secret=secret,
         )
 
     def owned(

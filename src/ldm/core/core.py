@@ -25,12 +25,15 @@ Threads: paho's threads run `Core.sink` (admission, and cutting batches apart); 
 core's dispatch thread runs everything else, on what waited, in the fair queue's order.
 The only state both touch is the admission's, behind its own lock.
 
-Pay per batch: a participant's input is decoded and its tag checked once, at
-admission, and the decoded envelope travels with it to the dispatch thread, which takes
-everything that waited (up to ``max_batch``) at once, and the envelopes it forwards to
-one destination (a provider, another core) leave as one batch (`ldm.wire.batch`) once
-it has handled them all; a lone envelope leaves at once. A core forwards the envelope
-bytes it received (the user core drops the tag first).
+Pay per batch: every message's topic is parsed once, in `Core.sink`, and travels with
+it: a participant's message as an `Admitted`, any other as `ldm.wire.batch.Entry` (a
+batch's envelopes each as one, with the batch's parsed topic and its pseudonym). A
+participant's input is decoded and its tag checked once, at admission, and the decoded
+envelope travels with it to the dispatch thread, which takes everything that waited (up
+to ``max_batch``) at once, and the envelopes it forwards to one destination (a
+provider, another core) leave as one batch (`ldm.wire.batch`) once it has handled them
+all; a lone envelope leaves at once. A core forwards the envelope bytes it received
+(the user core cuts the tag off them, and delivers a reply as it came).
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ from ldm.transport.hops import Hops
 from ldm.transport.intake import FairQueue
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.wire import batch, topics
+from ldm.wire.batch import Entry
 from ldm.wire.messages import (
     CoreStatus,
     Envelope,
@@ -78,17 +82,13 @@ _DATA = frozenset({"provider_reply", "bb_input", "bb_reply"})
 _BATCH = frozenset({"provider_reply_batch", "bb_input_batch", "bb_reply_batch"})
 """Batches a core receives: each envelope in them waits in its pseudonym's lane."""
 
-
-def single_topic(topic: topics.Topic, pseudonym: str) -> str:
-    """The single message's topic of `pseudonym`'s envelope in a batch on `topic`."""
-    if topic.kind == "bb_input_batch":
-        return topics.bb_input(topic.core, topic.service, topic.user_core, pseudonym)
-    if topic.kind == "bb_reply_batch":
-        return topics.bb_reply(topic.core, topic.service, pseudonym)
-    return topics.provider_reply(topic.service, pseudonym)
+Item = Event | Entry
+"""What a core's dispatch thread takes: a reconnect, a participant's message (an
+`Admitted`; a plain `Message` handed to `Core.handle` is parsed there), or an entry:
+an envelope under a pseudonym, or a control message, with its parsed topic."""
 
 
-class Core(Dispatcher[Event]):
+class Core(Dispatcher[Item]):
     """An LDM core. ``start()`` connects and runs it in background threads; ``stop()`` ends it."""
 
     def __init__(self, config: CoreConfig) -> None:
@@ -225,13 +225,17 @@ class Core(Dispatcher[Event]):
 
     # --- intake (paho's threads) ------------------------------------------------------
 
-    def sink(self, item: Event) -> None:
-        """Both transports' sink (paho's threads). A participant's message is admitted
-        here (`Admission.admit`), before it shares a queue with anyone, and waits in its
-        client's lane of the fair queue; data under a pseudonym (a provider's reply,
-        input and replies over the backbone) waits in that pseudonym's lane; control
-        (service announcements and lists, core statuses, reconnects) is handled first.
-        A batch is cut into its envelopes here (without decoding them), each in its lane."""
+    def sink(self, item: Item) -> None:
+        """Both transports' sink (paho's threads), where each message's topic is parsed,
+        once. A participant's message is admitted here (`Admission.admit`), before it
+        shares a queue with anyone, and waits in its client's lane of the fair queue;
+        data under a pseudonym (a provider's reply, input and replies over the backbone)
+        waits in that pseudonym's lane as an `Entry`; control (service announcements and
+        lists, core statuses, reconnects) is handled first. A batch is cut into its
+        envelopes here (without decoding them), each an `Entry` in its lane."""
+        if isinstance(item, Entry):
+            self._offer(item)
+            return
         if not isinstance(item, Message):
             super().sink(item)
             return
@@ -245,22 +249,29 @@ class Core(Dispatcher[Event]):
                 self.admission.overflowed()
             if timer is not None:
                 timer("admit", time.perf_counter() - started)
-        elif topic.kind in _DATA:
-            if not self._intake.offer(item, (_PSEUDONYM, topic.pseudonym)):
-                self.admission.overflowed()
         elif topic.kind in _BATCH:
             self._unbatch(item, topic)
         else:
-            super().sink(item)
+            self._offer(Entry(topic, topic.pseudonym, item.payload, item.qos, item.source))
+
+    def _offer(self, entry: Entry) -> None:
+        """Queue an entry: data in its pseudonym's lane, control first."""
+        if entry.topic.kind in _DATA or entry.topic.kind in _BATCH:
+            queued = self._intake.offer(entry, (_PSEUDONYM, entry.pseudonym))
+        else:
+            queued = self._intake.offer(entry)
+        if not queued:
+            self.admission.overflowed()
 
     def _unbatch(self, msg: Message, topic: topics.Topic) -> None:
-        """A batch (paho's thread): each envelope waits in its pseudonym's lane as the
-        single message it stands for; a malformed line is counted and skipped."""
-        entries, bad = batch.decode(msg.payload)
+        """A batch (paho's thread): each envelope waits in its pseudonym's lane as an
+        `Entry` that carries the batch's parsed topic; a malformed line is counted and
+        skipped."""
+        entries, bad = batch.cut(msg.payload, topic, msg.qos, msg.source)
         dropped = 0
-        for pseudonym, envelope in entries:
-            single = Message(single_topic(topic, pseudonym), envelope, msg.qos, False, msg.source)
-            if not self._intake.offer(single, (_PSEUDONYM, pseudonym)):
+        offer = self._intake.offer
+        for entry in entries:
+            if not offer(entry, (_PSEUDONYM, entry.pseudonym)):
                 dropped += 1
         if bad:
             self.admission.malformed(bad)
@@ -276,10 +287,10 @@ class Core(Dispatcher[Event]):
 
     # --- dispatch thread ----------------------------------------------------------------
 
-    def handle(self, item: Event) -> None:
+    def handle(self, item: Item) -> None:
         self.handle_many([item])
 
-    def handle_many(self, items: list[Event]) -> None:
+    def handle_many(self, items: list[Item]) -> None:
         """Everything that waited, in the order the fair queue gave it; then the
         envelopes to forward leave, one message per destination (`Outbox`)."""
         timer = self.timer
@@ -296,24 +307,39 @@ class Core(Dispatcher[Event]):
         finally:
             self.router.flush()
 
-    def _handle(self, item: Event) -> None:
+    def _handle(self, item: Item) -> None:
         if isinstance(item, Connected):
             self._on_connected(item.source)
             return
-        topic = topics.parse(item.topic)
         try:
-            if item.source == _CLUSTER:
-                self._from_cluster(item, topic)
+            if isinstance(item, Entry):
+                self._entry(item)
+            elif isinstance(item, Admitted):
+                self._from_participant_topic(item, item.parsed)
             else:
-                self._from_backbone(item, topic)
+                self._plain(item)
         except ValidationError:
             self.stats.dropped_invalid += 1
             log.debug(
                 "%s: dropped a malformed message on %s",
                 self.name,
-                item.topic,
+                item.topic.kind if isinstance(item, Entry) else item.topic,
                 extra={"event": "malformed_message"},
             )
+
+    def _plain(self, msg: Message) -> None:
+        """A message handed to `handle` itself, not taken through `sink`: its topic is
+        parsed here, once."""
+        topic = topics.parse(msg.topic)
+        if msg.source == _CLUSTER and topic.client:
+            self._from_participant_topic(msg, topic)
+        elif topic.kind in _BATCH:
+            entries, bad = batch.cut(msg.payload, topic, msg.qos, msg.source)
+            self.stats.dropped_invalid += bad
+            for entry in entries:
+                self._handle(entry)
+        else:
+            self._entry(Entry(topic, topic.pseudonym, msg.payload, msg.qos, msg.source))
 
     def tick(self, now: float) -> None:
         self.catalog.repair(now)
@@ -338,34 +364,38 @@ class Core(Dispatcher[Event]):
     # Every message ends in exactly one counter: forwarded_*, dropped_*, rejected_*,
     # answered_*, granted, or control (an announcement, withdrawal or core status taken).
 
-    def _from_cluster(self, msg: Message, topic: topics.Topic) -> None:
-        kind = topic.kind
+    def _from_participant_topic(self, msg: Message, topic: topics.Topic) -> None:
         if topic.client and msg.topic.count("/") >= 4:  # ldm/p/{client}/up/...
             self._from_participant(msg, topic)
-        elif kind == "announce":
-            self.catalog.local(topic.service, msg.payload)
-        elif kind == "provider_reply":
-            env = Envelope.model_validate_json(msg.payload)
-            self.router.reply(topic.service, topic.pseudonym, env, msg.payload)
-        elif kind == "services":
-            self.catalog.check_list(msg.payload)
         else:
             self.stats.dropped_invalid += 1
 
-    def _from_backbone(self, msg: Message, topic: topics.Topic) -> None:
+    def _entry(self, entry: Entry) -> None:
+        """An envelope under a pseudonym, or a control message (`Entry`)."""
+        topic, payload = entry.topic, entry.payload
         kind = topic.kind
-        if kind == "bb_announce":
-            self.catalog.remote(topic.service, msg.payload)
+        if entry.source == _CLUSTER:
+            if kind == "announce":
+                self.catalog.local(topic.service, payload)
+            elif kind == "provider_reply" or kind == "provider_reply_batch":
+                env = Envelope.model_validate_json(payload)
+                self.router.reply(topic.service, entry.pseudonym, env, payload)
+            elif kind == "services":
+                self.catalog.check_list(payload)
+            else:
+                self.stats.dropped_invalid += 1
+        elif kind == "bb_announce":
+            self.catalog.remote(topic.service, payload)
         elif kind == "bb_core":
-            self.catalog.core_status(msg.payload)
-        elif kind == "bb_input":
-            env = Envelope.model_validate_json(msg.payload)
+            self.catalog.core_status(payload)
+        elif kind == "bb_input" or kind == "bb_input_batch":
+            env = Envelope.model_validate_json(payload)
             local = self.catalog.served_here(topic.service, time.time())
-            self.router.remote_input(topic, env, msg.payload, local)
-        elif kind == "bb_reply":
-            env = Envelope.model_validate_json(msg.payload)
+            self.router.remote_input(topic, entry.pseudonym, env, payload, local)
+        elif kind == "bb_reply" or kind == "bb_reply_batch":
+            env = Envelope.model_validate_json(payload)
             if not self.router.stale(env):
-                self.router.deliver(topic.service, topic.pseudonym, env)
+                self.router.deliver(topic.service, entry.pseudonym, env, payload)
         else:
             self.stats.dropped_invalid += 1
 
@@ -423,7 +453,7 @@ class Core(Dispatcher[Event]):
                 known = admitted.envelope if admitted is not None else None
                 env = Envelope.model_validate_json(msg.payload) if known is None else known
                 secret = admitted.secret if admitted is not None and known is not None else None
-                if not self._participant_input(charge, client, service, env, secret):
+                if not self._participant_input(charge, client, service, env, msg.payload, secret):
                     return
         except ValidationError as exc:
             self.stats.dropped_invalid += 1
@@ -448,12 +478,18 @@ class Core(Dispatcher[Event]):
         self.notices.send(client, self.sessions.grant(client, req, svc.description, time.time()))
 
     def _participant_input(
-        self, charge: Charge, client: str, service: str, env: Envelope, checked: bytes | None
+        self,
+        charge: Charge,
+        client: str,
+        service: str,
+        env: Envelope,
+        received: bytes,
+        checked: bytes | None,
     ) -> bool:
-        """Input of a participant's session, forwarded under its pseudonym. `checked`:
-        the secret admission checked the tag with (not checked again while the session
-        still has it). True if what admission knows of the session may have changed (a
-        new session, key or pseudonym)."""
+        """Input of a participant's session (`env`, decoded from `received`), forwarded
+        under its pseudonym. `checked`: the secret admission checked the tag with (not
+        checked again while the session still has it). True if what admission knows of
+        the session may have changed (a new session, key or pseudonym)."""
         cfg = self.config
         now = time.time()
         if env.t > now + cfg.max_clock_skew:
@@ -492,7 +528,7 @@ class Core(Dispatcher[Event]):
             )
             self.notices.reject(charge, client, service, "rate_limited", error, c=env.c)
             return False
-        problem = self.router.forward_input(svc.origin, service, pseudonym, env, now)
+        problem = self.router.forward_input(svc.origin, service, pseudonym, env, received, now)
         if problem is not None:
             self.stats.rejected_unavailable += 1
             # Answered whatever the notice bucket holds: the input is authentic (its tag

@@ -8,8 +8,10 @@ place that knows it), or back over the backbone.
 
 Envelopes to one destination (a provider, another core) wait in the `Outbox` while the
 core's dispatch thread handles what waited, then leave as one batch (`ldm.wire.batch`; `flush`).
-A core forwards the bytes it received (decoded and checked, not encoded again); the
-user core drops the participant's tag first. Only the core's dispatch thread calls it.
+A core forwards the bytes it received (decoded and checked, not encoded again): the
+user core cuts the participant's tag off them (`ldm.wire.messages.untagged`) and
+delivers a reply as it came when it holds nothing but ``c``, ``t`` and ``d``
+(`ldm.wire.messages.reply_bytes`). Only the core's dispatch thread calls it.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Transport
 from ldm.wire import topics
 from ldm.wire.batch import Outbox
-from ldm.wire.messages import Envelope
+from ldm.wire.messages import Envelope, reply_bytes, untagged
 
 __all__ = ["Router"]
 
@@ -68,13 +70,20 @@ class Router:
         return False
 
     def forward_input(
-        self, origin: str, service: str, pseudonym: str, env: Envelope, now: float
+        self,
+        origin: str,
+        service: str,
+        pseudonym: str,
+        env: Envelope,
+        received: bytes,
+        now: float,
     ) -> str | None:
         """A participant's input, its session checked, under its pseudonym: to this
-        cluster's provider or to the service's core (`origin`). Why it cannot leave now,
-        if it cannot (`backbone_problem`), else None."""
+        cluster's provider or to the service's core (`origin`), as the bytes `received`
+        without the tag. Why it cannot leave now, if it cannot (`backbone_problem`),
+        else None."""
         cfg = self._config
-        payload = Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()  # without the tag
+        payload = untagged(env, received)
         if self.hops is not None:
             self.hops.mark("sent", env.c, env.t)
             self.hops.mark("user_core", env.c, now)
@@ -111,8 +120,11 @@ class Router:
             "reaches it now; send again later"
         )
 
-    def remote_input(self, topic: topics.Topic, env: Envelope, payload: bytes, local: bool) -> None:
-        """Input from another cluster's participant (`local`: its service is this
+    def remote_input(
+        self, topic: topics.Topic, pseudonym: str, env: Envelope, payload: bytes, local: bool
+    ) -> None:
+        """Input from another cluster's participant under `pseudonym`, which came on
+        `topic` (a batch's or a single message's; `local`: its service is this
         cluster's), to the provider; its core is remembered for the replies."""
         if self.stale(env):
             return
@@ -121,9 +133,9 @@ class Router:
         if not local:
             self._stats.dropped_unroutable += 1
             return
-        self._routes[topic.pseudonym] = Route(topic.user_core, time.time())
+        self._routes[pseudonym] = Route(topic.user_core, time.time())
         batch_topic = topics.provider_input_batch(topic.service)
-        self._forward(self._cluster, batch_topic, topic.pseudonym, env, payload)
+        self._forward(self._cluster, batch_topic, pseudonym, env, payload)
         self._stats.forwarded_in += 1
 
     def reply(self, service: str, pseudonym: str, env: Envelope, payload: bytes) -> None:
@@ -132,7 +144,7 @@ class Router:
         if self.stale(env):
             return
         if self._sessions.of(pseudonym) is not None:
-            self.deliver(service, pseudonym, env)
+            self.deliver(service, pseudonym, env, payload)
             return
         route = self._routes.get(pseudonym)
         if route is None or self._backbone is None:
@@ -142,13 +154,14 @@ class Router:
         self._forward(self._backbone, batch_topic, pseudonym, env, payload)
         self._stats.forwarded_out += 1
 
-    def deliver(self, service: str, pseudonym: str, env: Envelope) -> None:
-        """A fresh reply (the caller checked its age) to the participant of a pseudonym."""
+    def deliver(self, service: str, pseudonym: str, env: Envelope, payload: bytes) -> None:
+        """A fresh reply (the caller checked its age) to the participant of a pseudonym:
+        `payload`, the bytes `env` was decoded from, when they hold nothing else."""
         session = self._sessions.of(pseudonym)
         if session is None or session.service != service:
             self._stats.dropped_unroutable += 1
             return
-        reply = Envelope(c=env.c, t=env.t, d=env.d).encode()
+        reply = reply_bytes(env, payload)
         topic = topics.participant_reply(session.client, service)
         self._cluster.publish(topic, reply, self._config.data_qos)
         if self.hops is not None:

@@ -13,7 +13,8 @@ arrival, and returns one reply (or None) for each: a service whose work is cheap
 item in bulk keeps up under load at no cost to a lone request.
 
 Pay per batch: input arrives one envelope per message or many in one batch from the
-core (`ldm.wire.batch`), cut apart on arrival; the dispatch thread takes everything that
+core (`ldm.wire.batch`), cut apart on arrival into entries (`ldm.wire.batch.Entry`)
+that carry the topic parsed there, once; the dispatch thread takes everything that
 waited (up to ``max_batch``), and the replies to it leave together, one batch once the
 thread has handled it all, or a single message when there is one.
 
@@ -50,7 +51,7 @@ from ldm.transport.dispatch import Dispatcher
 from ldm.transport.hops import Hops
 from ldm.transport.mqtt import Connected, Event, Message, Transport, Will
 from ldm.wire import batch, topics
-from ldm.wire.batch import Outbox
+from ldm.wire.batch import Entry, Outbox
 from ldm.wire.messages import (
     Announcement,
     Envelope,
@@ -76,6 +77,10 @@ class Request:
     new_pseudonym: bool
     """True for the first input seen under this pseudonym (a new session or a rotation)."""
 
+
+Item = Event | Entry
+"""What a provider's dispatch thread takes: a reconnect, an input or a note with its
+parsed topic (`Entry`), or a plain `Message` handed to `Provider.handle` (parsed there)."""
 
 Handler = Callable[[Request], Mapping[str, Any] | None]
 BatchHandler = Callable[[Sequence[Request]], Sequence[Mapping[str, Any] | None]]
@@ -152,7 +157,7 @@ class _Reply:
     """The participant key's record, which remembers the replies for retries."""
 
 
-class Provider(Dispatcher[Event]):
+class Provider(Dispatcher[Item]):
     """A service provider. ``start()`` announces and serves; ``stop()`` withdraws."""
 
     def __init__(
@@ -221,8 +226,8 @@ class Provider(Dispatcher[Event]):
         # Subscribed at QoS 2 unless set, input arrives at the QoS the core sent it with.
         qos = 2 if config.data_qos is None else config.data_qos
         self.transport.subscribe(topics.provider_input_filter(spec.name), qos)
-        self._batch_topic = topics.provider_input_batch(spec.name)
-        self.transport.subscribe(self._batch_topic, qos)
+        self.transport.subscribe(topics.provider_input_batch(spec.name), qos)
+        self._reply_topic = topics.provider_reply_batch(spec.name)
         self.cluster = config.cluster
         """The core's name every announcement is signed for (`Announcement.cluster`);
         None until the cluster's service list names it."""
@@ -318,9 +323,9 @@ class Provider(Dispatcher[Event]):
         with self._count:
             self.stats.notes_sent += 1
 
-    def _note(self, msg: Message) -> None:
+    def _note(self, msg: Entry) -> None:
         """A family note (dispatch thread): opened, checked, given to ``on_note``."""
-        sender = topics.parse(msg.topic).service
+        sender = msg.topic.service
         if sender == self.name or self._on_note is None or self._region_key is None:
             return
         try:
@@ -349,21 +354,24 @@ class Provider(Dispatcher[Event]):
     def overflowed(self) -> None:
         self.stats.dropped_overload += 1
 
-    def sink(self, item: Event) -> None:
-        """The transport's sink (paho's thread): a batch is cut into its envelopes, each
-        queued as the single message it stands for; a malformed line is counted."""
-        if isinstance(item, Message) and item.topic == topics.SERVICES:
-            self._service_list(item.payload)
-            return
-        if isinstance(item, Message) and item.topic == self._batch_topic:
-            entries, bad = batch.decode(item.payload)
-            if bad:
-                with self._count:
-                    self.stats.dropped_invalid += bad
-            for pseudonym, envelope in entries:
-                topic = topics.provider_input(self.name, pseudonym)
-                self._take(Message(topic, envelope, item.qos, False, item.source))
-            return
+    def sink(self, item: Item) -> None:
+        """The transport's sink (paho's thread), where each message's topic is parsed,
+        once: a message is queued as an `Entry`, and a batch is cut into its envelopes,
+        each an `Entry` with the batch's topic; a malformed line is counted."""
+        if isinstance(item, Message):
+            if item.topic == topics.SERVICES:
+                self._service_list(item.payload)
+                return
+            topic = topics.parse(item.topic)
+            if topic.kind == "provider_input_batch" and topic.service == self.name:
+                entries, bad = batch.cut(item.payload, topic, item.qos, item.source)
+                if bad:
+                    with self._count:
+                        self.stats.dropped_invalid += bad
+                for entry in entries:
+                    self._take(entry)
+                return
+            item = Entry(topic, topic.pseudonym, item.payload, item.qos, item.source)
         self._take(item)
 
     def _service_list(self, payload: bytes) -> None:
@@ -385,17 +393,17 @@ class Provider(Dispatcher[Event]):
             self.cluster = listing.cluster
             self._next_announce = 0.0
 
-    def _take(self, item: Event) -> None:
-        if self.hops is not None and isinstance(item, Message):
+    def _take(self, item: Item) -> None:
+        if self.hops is not None and isinstance(item, Entry):
             self._arrived[id(item)] = time.time()  # paho's thread; `open` takes it
         super().sink(item)
 
     # --- dispatch thread ----------------------------------------------------------------
 
-    def handle(self, item: Event) -> None:
+    def handle(self, item: Item) -> None:
         self.handle_many([item])
 
-    def handle_many(self, items: list[Event]) -> None:
+    def handle_many(self, items: list[Item]) -> None:
         """Inputs that waited together go to the batch handler as one batch (a reconnect
         among them is handled in its place), or one by one to the handler; then their
         replies leave."""
@@ -404,33 +412,32 @@ class Provider(Dispatcher[Event]):
                 for item in items:
                     if isinstance(item, Connected):
                         self._connected(time.time())
-                    elif self._is_note(item):
-                        self._note(item)
+                        continue
+                    entry = _entry(item)
+                    if self._is_note(entry):
+                        self._note(entry)
                     else:
-                        self._input(item)
+                        self._input(entry)
                 return
-            run: list[Message] = []
+            run: list[Entry] = []
             for item in items:
-                if self._is_note(item):
-                    assert isinstance(item, Message)
-                    self._note(item)
-                elif isinstance(item, Connected):
+                if isinstance(item, Connected):
                     self._inputs(run)
                     run = []
                     self._connected(time.time())
+                    continue
+                entry = _entry(item)
+                if self._is_note(entry):
+                    self._note(entry)
                 else:
-                    run.append(item)
+                    run.append(entry)
             self._inputs(run)
         finally:
             self._outbox.flush()
             self.stats.reply_batches = self._outbox.batches
 
-    def _is_note(self, item: Event) -> bool:
-        return (
-            self._on_note is not None
-            and isinstance(item, Message)
-            and topics.parse(item.topic).kind == "family_note"
-        )
+    def _is_note(self, entry: Entry) -> bool:
+        return self._on_note is not None and entry.topic.kind == "family_note"
 
     def tick(self, now: float) -> None:
         if now >= self._next_announce and self.transport.connected:
@@ -468,7 +475,7 @@ class Provider(Dispatcher[Event]):
         if timer is not None:
             timer(stage, time.perf_counter() - started)
 
-    def _input(self, msg: Message) -> None:
+    def _input(self, msg: Entry) -> None:
         started = time.perf_counter()
         opened = self.open(msg)
         self._timed("open", started)
@@ -488,7 +495,7 @@ class Provider(Dispatcher[Event]):
                 self.stats.handler_errors += 1
             log.error("%s: no reply to a request", self.name, exc_info=True)
 
-    def _inputs(self, messages: list[Message]) -> None:
+    def _inputs(self, messages: list[Entry]) -> None:
         """A batch of input: opened one by one, answered by the batch handler at once."""
         assert self._batch_handler is not None
         opened = []
@@ -518,11 +525,12 @@ class Provider(Dispatcher[Event]):
             if answer is not None:
                 self._send(route, request.pseudonym, request.correlation_id, answer)
 
-    def open(self, msg: Message) -> tuple[Request, _Reply] | None:
-        """One input message -> the decrypted request and the route of its reply; None
-        (and counted) if it is oversize, invalid, stale or a replay. The dispatch thread's
-        first step, apart so `laas bench --worker-only` can time it."""
-        pseudonym = topics.parse(msg.topic).pseudonym
+    def open(self, msg: Entry | Message) -> tuple[Request, _Reply] | None:
+        """One input (an `Entry`, or a message, whose topic is then parsed here) -> the
+        decrypted request and the route of its reply; None (and counted) if it is
+        oversize, invalid, stale or a replay. The dispatch thread's first step, apart so
+        `laas bench --worker-only` can time it."""
+        pseudonym = msg.pseudonym if isinstance(msg, Entry) else topics.parse(msg.topic).pseudonym
         arrived = self._arrived.pop(id(msg), None) if self.hops is not None else None
         if len(msg.payload) > self.config.max_payload:
             self.stats.dropped_oversize += 1
@@ -551,8 +559,7 @@ class Provider(Dispatcher[Event]):
                 return None
             # A retry (or a broker's duplicate) of an input answered lately: the same
             # reply again, so a reply lost on the way costs the participant one retry.
-            batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, pseudonym, again[0], qos)
+            self._outbox.add(self.transport, self._reply_topic, pseudonym, again[0], qos)
             self.stats.answered_again += 1
             return None
         new = pseudonym not in self._by_pseudonym
@@ -592,13 +599,20 @@ class Provider(Dispatcher[Event]):
         if now:
             self.transport.publish(topics.provider_reply(self.name, pseudonym), sealed, route.qos)
         else:
-            batch_topic = topics.provider_reply_batch(self.name)
-            self._outbox.add(self.transport, batch_topic, pseudonym, sealed, route.qos)
+            self._outbox.add(self.transport, self._reply_topic, pseudonym, sealed, route.qos)
         with self._count:
             self.stats.replies += 1
             if route.peer is not None:
                 sent = time.time()
                 route.peer.answered(correlation_id, sealed, sent, sent - self.config.max_age)
+
+
+def _entry(item: Entry | Message) -> Entry:
+    """`item` as an entry: a plain message handed to `Provider.handle` is parsed here."""
+    if isinstance(item, Entry):
+        return item
+    topic = topics.parse(item.topic)
+    return Entry(topic, topic.pseudonym, item.payload, item.qos, item.source)
 
 
 def _note_aad(sender: str, t: float) -> str:

@@ -23,11 +23,11 @@ a batch (the embedded broker did, under load).
 
 from __future__ import annotations
 
-from typing import Final, Protocol
+from typing import Final, NamedTuple, Protocol
 
-from ldm.wire.topics import PSEUDONYM_PATTERN
+from ldm.wire.topics import PSEUDONYM_PATTERN, Topic
 
-__all__ = ["MAX_BATCH_BYTES", "Outbox", "Publisher", "decode", "encode"]
+__all__ = ["MAX_BATCH_BYTES", "Entry", "Outbox", "Publisher", "cut", "decode", "encode"]
 
 MAX_BATCH_BYTES: Final = 64 * 1024
 """A batch is sent once it holds this many bytes, and a new one begun."""
@@ -60,6 +60,27 @@ def decode(payload: bytes) -> tuple[list[tuple[str, bytes]], int]:
             continue
         entries.append((pseudonym, envelope))
     return entries, bad
+
+
+class Entry(NamedTuple):
+    """One envelope as a core or a provider queues it: the topic it came on, parsed
+    once on arrival (a batch's topic, or a single message's), the pseudonym it travels
+    under (a batch line's, or the single topic's), its bytes as received, and the QoS
+    and transport (``source``) of the message that carried it. A message on a topic
+    without a pseudonym (a core's control messages) is one too, its ``pseudonym`` empty."""
+
+    topic: Topic
+    pseudonym: str
+    payload: bytes
+    qos: int
+    source: str
+
+
+def cut(payload: bytes, topic: Topic, qos: int, source: str) -> tuple[list[Entry], int]:
+    """A batch that came on `topic` (parsed) -> its entries in order, and the number of
+    malformed lines (`decode`)."""
+    pairs, bad = decode(payload)
+    return [Entry(topic, pseudonym, envelope, qos, source) for pseudonym, envelope in pairs], bad
 
 
 class Publisher(Protocol):

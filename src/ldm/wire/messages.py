@@ -8,7 +8,7 @@ All payloads are UTF-8 JSON; times are Unix seconds (float) taken by the sender.
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -30,6 +30,8 @@ __all__ = [
     "SessionRequest",
     "Withdrawal",
     "canonical",
+    "reply_bytes",
+    "untagged",
 ]
 
 _NAME = NAME_PATTERN.pattern
@@ -262,3 +264,46 @@ class Envelope(_Wire):
     def encode(self) -> bytes:
         """Compact JSON, without unset optional fields."""
         return self.model_dump_json(exclude_none=True).encode()
+
+
+_TAG_TAIL: Final = b',"m":"'
+_TAG_TAIL_LEN: Final = len(_TAG_TAIL) + 24 + len(b'"}')  # the tag's base64 is 24 characters
+
+
+def untagged(env: Envelope, payload: bytes) -> bytes:
+    """The bytes of input envelope `env`, decoded from `payload`, without its tag ``m``
+    (what a user core forwards), cut from `payload` where it holds the five fields alone
+    as `Envelope.encode` writes them (18 quotes, no escapes, ``m`` last), else encoded
+    again: either way the same envelope without ``m``.
+
+    >>> env = Envelope(c="c1", t=1.5, k="A" * 44, d="QUJD", m="B" * 24)
+    >>> untagged(env, env.encode()) == Envelope(c="c1", t=1.5, k="A" * 44, d="QUJD").encode()
+    True
+    """
+    if (
+        env.m is not None
+        and env.k is not None
+        and payload.endswith(b'"}')
+        and payload[-_TAG_TAIL_LEN : -_TAG_TAIL_LEN + len(_TAG_TAIL)] == _TAG_TAIL
+        and payload.count(b'"') == 18
+        and b"\\" not in payload
+    ):
+        return payload[:-_TAG_TAIL_LEN] + b"}"
+    return Envelope(c=env.c, t=env.t, k=env.k, d=env.d).encode()
+
+
+def reply_bytes(env: Envelope, payload: bytes) -> bytes:
+    """The bytes of reply envelope `env`, decoded from `payload`, as a user core
+    delivers them (``c``, ``t`` and ``d``, nothing else): `payload` itself when it holds
+    those three fields alone (10 quotes, no escapes, no ``k`` or ``m``), else encoded.
+
+    >>> env = Envelope(c="c1", t=1.5, d="QUJD")
+    >>> payload = env.encode()
+    >>> reply_bytes(env, payload) is payload
+    True
+    >>> reply_bytes(env, b'{"c":"c1","t":1.5,"d":"QUJD","x":1}') == payload
+    True
+    """
+    if env.k is None and env.m is None and payload.count(b'"') == 10 and b"\\" not in payload:
+        return payload
+    return Envelope(c=env.c, t=env.t, d=env.d).encode()

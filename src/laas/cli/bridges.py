@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from laas.bridges.metrics import watch_bridge
 from laas.bridges.pool import Answer, DevicePool, Malformed, PoolConfig
-from laas.cli.common import Subcommands, connection_args
+from laas.cli.common import Subcommands, connection_args, pinned_key_args
 from laas.errors import ConfigError
 from laas.models import CorrectedPosition, GpsMeasurement
 from ldm import BrokerSettings
@@ -79,16 +79,7 @@ def device_account_args(p: argparse.ArgumentParser, devices: str = "device") -> 
 
 def _pool_args(p: argparse.ArgumentParser) -> None:
     device_account_args(p)
-    p.add_argument(
-        "--service-key",
-        default=os.environ.get("LAAS_SERVICE_KEY"),
-        help="pin the laas worker's identity (env LAAS_SERVICE_KEY)",
-    )
-    p.add_argument(
-        "--core-key",
-        default=os.environ.get("LAAS_CORE_KEY"),
-        help="pin the user core's key (env LAAS_CORE_KEY)",
-    )
+    pinned_key_args(p)
     p.add_argument(
         "--track-timeout",
         type=float,

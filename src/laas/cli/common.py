@@ -26,6 +26,7 @@ __all__ = [
     "engine_config",
     "http_args",
     "max_age_arg",
+    "pinned_key_args",
     "scenario_args",
     "write_plots",
 ]
@@ -77,6 +78,29 @@ def connection_args(p: argparse.ArgumentParser, env_prefix: str) -> None:
         type=Path,
         default=os.environ.get(f"{env_prefix}_CA_FILE"),
         help=f"CA certificates for an mqtts:// broker (env {env_prefix}_CA_FILE)",
+    )
+
+
+def pinned_key_args(p: argparse.ArgumentParser, *, anchors: bool = False) -> None:
+    """`--service-key` and `--core-key` (and, with `anchors`, `--trust-anchor`): the keys
+    a participant pins (docs/security.md)."""
+    p.add_argument(
+        "--service-key",
+        default=os.environ.get("LAAS_SERVICE_KEY"),
+        help="pin the laas worker's identity (its public key; env LAAS_SERVICE_KEY)",
+    )
+    if anchors:
+        p.add_argument(
+            "--trust-anchor",
+            action="append",
+            default=[],
+            metavar="KEY",
+            help="trust a laas identity this anchor endorsed (repeatable)",
+        )
+    p.add_argument(
+        "--core-key",
+        default=os.environ.get("LAAS_CORE_KEY"),
+        help="pin the user core's key: act only on notices it signed (env LAAS_CORE_KEY)",
     )
 
 

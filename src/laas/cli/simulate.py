@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 from laas.cli.bridges import device_account_args
@@ -14,6 +13,7 @@ from laas.cli.common import (
     cluster_broker,
     connection_args,
     max_age_arg,
+    pinned_key_args,
     scenario_args,
 )
 from laas.progress import progress_printer
@@ -95,21 +95,5 @@ def add_simulate(sub: Subcommands) -> None:
         action="store_true",
         help="print the accounts the users need with --device-accounts, and exit",
     )
-    p.add_argument(
-        "--service-key",
-        default=os.environ.get("LAAS_SERVICE_KEY"),
-        help="pin the laas worker's identity (its public key; env LAAS_SERVICE_KEY)",
-    )
-    p.add_argument(
-        "--trust-anchor",
-        action="append",
-        default=[],
-        metavar="KEY",
-        help="trust a laas identity this anchor endorsed (repeatable)",
-    )
-    p.add_argument(
-        "--core-key",
-        default=os.environ.get("LAAS_CORE_KEY"),
-        help="pin the user core's key: act only on notices it signed (env LAAS_CORE_KEY)",
-    )
+    pinned_key_args(p, anchors=True)
     p.set_defaults(func=_cmd_simulate)

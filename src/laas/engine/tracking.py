@@ -220,6 +220,12 @@ class Track:
         """2x2 covariance of the position, m^2."""
         return self._P[:2, :2].copy()
 
+    def moments(self) -> tuple[list[float], list[list[float]]]:
+        """(x, P) as plain floats, for per-user arithmetic (no arrays made)."""
+        x: list[float] = self._x.tolist()
+        p: list[list[float]] = self._P.tolist()
+        return x, p
+
     def state(self) -> tuple[np.ndarray, np.ndarray]:
         """(x (4,), P (4, 4)) copies: what a hand-over carries (`laas.engine.handover`)."""
         return self._x.copy(), self._P.copy()

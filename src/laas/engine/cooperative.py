@@ -464,18 +464,31 @@ class CooperativeLaneFilter(LaneFilter):
             s_m^2 = n' (P_track + P_b*) n."""
         c = self.config
         segment = users[0].segment
-        position = np.array([u.track.position for u in users])
-        p_cov = np.array([u.track.position_cov for u in users])
-        frame = segment.frame_many(position - b)
-        s_now, d_now = frame[:, 0], frame[:, 1]
-        tangent = segment.tangent_many(s_now)
-        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-        offsets = segment.lane_offsets_many(s_now)
+        w_lane = 1.0 / c.sigma_lane**2
+        covs = cov.tolist()
+        stations, d_now, w_ms = [], [], []
+        tangents: list[np.ndarray] = []
+        for k, u in enumerate(users):
+            x, p = u.track.moments()
+            pe, pn = x[0], x[1]
+            be, bn = b[k].tolist()
+            s_now, d = segment.frame(pe - be, pn - bn)
+            t_e, t_n = segment.tangent_at(s_now)
+            n_e, n_n = t_n, -t_e
+            (c00, c01), (_, c11) = covs[k]
+            # s_m^2 = n' (P_track + P_b*) n
+            var_m = (
+                n_e * n_e * (p[0][0] + c00)
+                + 2.0 * n_e * n_n * (p[0][1] + c01)
+                + n_n * n_n * (p[1][1] + c11)
+            )
+            stations.append(s_now)
+            d_now.append(d)
+            w_ms.append(1.0 / max(var_m, 1e-6))
+            tangents.append(np.array((t_e, t_n)))
+        offsets = segment.lane_offsets_many(np.array(stations))
         rows = np.arange(len(users))
         o = offsets[rows, lane]
-        var_m = _quad(normal, p_cov + cov)
-        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / np.maximum(var_m, 1e-6)
-        fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
         # Across the road the position is the posterior mean over lanes: on lane l the
         # user lies at its centre fused with the measurement as on l*, fused_l = fused +
         # o_l - o_l*, so  d = fused + sum_l P(l) (o_l - o_l*).  Sure of its lane, that is
@@ -485,20 +498,25 @@ class CooperativeLaneFilter(LaneFilter):
         shift = offsets - o[:, None]
         mean_shift = (marginal * shift).sum(axis=1)
         spread = (marginal * (shift - mean_shift[:, None]) ** 2).sum(axis=1)
-        cross = np.sqrt(1.0 / (w_lane + w_m) + spread)
-        point = segment.point_many(s_now, fused + mean_shift)
-        return [
-            Placement(
-                int(lane[k]),
-                float(marginal[k, lane[k]]),
-                point[k],
-                cov[k],
-                float(cross[k]),
-                tangent[k],
-                float(s_now[k]),
+        out = []
+        for k, (o_k, m_k, v_k, l_k) in enumerate(
+            zip(o.tolist(), mean_shift.tolist(), spread.tolist(), lane.tolist(), strict=True)
+        ):
+            w_m = w_ms[k]
+            fused = (w_lane * o_k + w_m * d_now[k]) / (w_lane + w_m)
+            point = np.array(segment.point(stations[k], fused + m_k))
+            out.append(
+                Placement(
+                    l_k,
+                    float(marginal[k, l_k]),
+                    point,
+                    cov[k],
+                    math.sqrt(1.0 / (w_lane + w_m) + v_k),
+                    tangents[k],
+                    stations[k],
+                )
             )
-            for k in rows.tolist()
-        ]
+        return out
 
     def _table(
         self,

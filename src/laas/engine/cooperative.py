@@ -80,7 +80,7 @@ from laas.engine.handover import AreaState, HandoverError, LaneState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import MULTIPATH_SIGMA, Track
-from laas.engine.transition import LaneTraits, lane_transition_many, motion_fit_many
+from laas.engine.transition import LaneTraits, lane_transition_of, motion_fit_of
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -344,26 +344,9 @@ class CooperativeLaneFilter(LaneFilter):
             alongs[i] = v_e * t_e + v_n * t_n
             speeds[i] = fix.speed
             laterals[i] = math.copysign(max(0.0, abs(v_lat) - noise), v_lat)
-        offsets = segment.lane_offsets_many(np.array(stations))
-        # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
-        # and its type's speeds.
         traits = self._traits.get(segment.id)
         if traits is None:
             traits = self._traits[segment.id] = LaneTraits(segment.lanes)
-        fit = motion_fit_many(traits, np.array(alongs), np.array(speeds))
-        # ... and never into a lane that does not fit the motion (its share stays in the
-        # lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest stays.
-        right, left = lane_transition_many(
-            offsets, np.array(laterals), np.array(dts), c.lane_change_rate, c.max_lane_change
-        )
-        scale = fit / fit.max(axis=1, keepdims=True)
-        lanes = offsets.shape[1]
-        step = np.arange(lanes - 1)
-        transition = np.zeros((n, lanes, lanes))
-        transition[:, step, step + 1] = right * scale[:, 1:]
-        transition[:, step + 1, step] = left * scale[:, :-1]
-        every = np.arange(lanes)
-        transition[:, every, every] = 1.0 - transition.sum(axis=2)
         out = []
         for i, (user, track, _, _) in enumerate(work):
             area, normal = areas[i], normals[i]
@@ -374,6 +357,22 @@ class CooperativeLaneFilter(LaneFilter):
             # answer read nothing else, and the margin keeps fresh the cells the posterior
             # could grow into before this user's next fix. The rest of the table stays.
             lo, hi = area.span(normal)
+            offsets = segment.lane_offsets(stations[i])
+            # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
+            # and its type's speeds.
+            fit = motion_fit_of(traits, alongs[i], speeds[i])
+            # ... and never into a lane that does not fit the motion (its share stays in
+            # the lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest
+            # stays.
+            top = max(fit)
+            transition = lane_transition_of(
+                offsets.tolist(),
+                laterals[i],
+                dts[i],
+                c.lane_change_rate,
+                c.max_lane_change,
+                [f / top for f in fit],
+            )
             out.append(
                 _User(
                     user,
@@ -385,9 +384,9 @@ class CooperativeLaneFilter(LaneFilter):
                     lo,
                     hi,
                     ds[i],
-                    offsets[i],
-                    transition[i],
-                    fit[i] ** memories[i],
+                    offsets,
+                    np.array(transition),
+                    np.array(fit) ** memories[i],
                     sigmas[i],
                     weights[i],
                 )

@@ -342,6 +342,11 @@ class CommonError:
         """A grid cell's own variance of b per axis, res^2 / 12."""
         return self._res**2 / 12.0
 
+    def taken(self, normal: np.ndarray) -> tuple[int, int]:
+        """The u-grid cells [lo, hi) that n . b takes over the window, without `span`'s
+        margin."""
+        return self._cells_and_span(normal)[1]
+
     def span(self, normal: np.ndarray) -> tuple[int, int]:
         """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
         u = n . b whose evidence `update` reads, and where `u_moments` has mass."""

@@ -558,19 +558,20 @@ def _reproject(
     where no mass lies, the user's marginal lane probabilities."""
     w, idx_old = area.weights_and_cells(n_old)
     _, idx_new = area.weights_and_cells(n_new)
-    flat_new, flat_w = idx_new.ravel(), w.ravel()
+    # only the u'-cells [lo, hi) that n_new . b takes over the window get any mass
+    lo, hi = area.taken(n_new)
+    flat_new, flat_w = idx_new.ravel() - lo, w.ravel()
     rows = alpha[idx_old.ravel()] * flat_w[:, None]  # (cells, L)
-    size = area.u.size
     num = np.stack(
-        [np.bincount(flat_new, weights=rows[:, k], minlength=size) for k in range(alpha.shape[1])],
+        [np.bincount(flat_new, weights=rows[:, k], minlength=hi - lo) for k in range(alpha.shape[1])],
         axis=1,
     )
-    den = np.bincount(flat_new, weights=flat_w, minlength=size)
+    den = np.bincount(flat_new, weights=flat_w, minlength=hi - lo)
     marginal = num.sum(axis=0)
     marginal = marginal / marginal.sum()
-    out = np.tile(marginal, (size, 1))
+    out = np.tile(marginal, (area.u.size, 1))
     held = den > 1e-12
-    out[held] = num[held] / den[held, None]
+    out[lo:hi][held] = num[held] / den[held, None]
     return out
 
 

@@ -331,8 +331,13 @@ class Engine:
         # default mode: the receiver's own lasting error s_rx, which the track does not
         # see, lies along the road as much as across it
         lasting = self.config.sigma_receiver**2 if self.config.mode == "default" else 0.0
-        cov = track.position_cov + placed.common_cov
-        along = math.sqrt(float(tangent @ cov @ tangent) + lasting)
+        # t' C t, C = P_track + P_b, in plain floats (numpy's calls on 2 x 2 arrays cost
+        # more than the arithmetic)
+        t_e, t_n = tangent.tolist()
+        p = track.moments()[1]
+        (b00, b01), (b10, b11) = placed.common_cov.tolist()
+        c00, c01, c10, c11 = p[0][0] + b00, p[0][1] + b01, p[1][0] + b10, p[1][1] + b11
+        along = math.sqrt((t_e * c00 + t_n * c10) * t_e + (t_e * c01 + t_n * c11) * t_n + lasting)
         lane = placed.lane
         probability = placed.probability
         if self.config.mode == "default":

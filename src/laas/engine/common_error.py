@@ -154,6 +154,7 @@ class CommonError:
         memory: float | None = None,
     ) -> None:
         self.centre = centre.copy()
+        self.centre_xy: tuple[float, float] = (float(centre[0]), float(centre[1]))
         half = 3.5 * prior_sigma  # wide enough that no ridge of likely values is clipped
         self._res = resolution
         self._axis = np.arange(-half, half + resolution / 2, resolution)
@@ -733,10 +734,12 @@ class CommonErrorField:
         best: CommonError | None = None
         best_d = self.size / 2.0
         ci, cj = self._cell(xy)
+        x, y = float(xy[0]), float(xy[1])
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 for area in self._cells.get((ci + di, cj + dj), ()):
-                    dist = float(np.hypot(*(area.centre - xy)))
+                    cx, cy = area.centre_xy
+                    dist = float(np.hypot(cx - x, cy - y))
                     if dist <= best_d:
                         best, best_d = area, dist
         if best is None:

@@ -563,7 +563,10 @@ def _reproject(
     flat_new, flat_w = idx_new.ravel() - lo, w.ravel()
     rows = alpha[idx_old.ravel()] * flat_w[:, None]  # (cells, L)
     num = np.stack(
-        [np.bincount(flat_new, weights=rows[:, k], minlength=hi - lo) for k in range(alpha.shape[1])],
+        [
+            np.bincount(flat_new, weights=rows[:, k], minlength=hi - lo)
+            for k in range(alpha.shape[1])
+        ],
         axis=1,
     )
     den = np.bincount(flat_new, weights=flat_w, minlength=hi - lo)

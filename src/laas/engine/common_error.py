@@ -207,9 +207,10 @@ class CommonError:
         ae, an = self._axis[i0:i1], self._axis[j0:j1]
         we, wn = w.sum(axis=1), w.sum(axis=0)
         me, mn = float(we @ ae), float(wn @ an)
-        cee = float(we @ (ae - me) ** 2)
-        cnn = float(wn @ (an - mn) ** 2)
-        cen = float((ae - me) @ w @ (an - mn))
+        de, dn = ae - me, an - mn
+        cee = float(we @ de**2)
+        cnn = float(wn @ dn**2)
+        cen = float(de @ w @ dn)
         own = self._res**2 / 12.0
         return np.array([me, mn]), np.array([[cee + own, cen], [cen, cnn + own]])
 

@@ -47,6 +47,7 @@ def make_lane_filter(config: EngineConfig) -> LaneFilter:
 
 
 _HANDOVER_REACH = 10_000.0  # m: a handed-over track this far off the map is not ours
+_FEW = 4  # fixes projected one by one (`laas.map.geo`: the same values as its array call)
 
 
 @dataclass
@@ -109,9 +110,14 @@ class Engine:
         """
         if not fixes:
             return []
-        lon = np.array([m.longitude for _, m in fixes])
-        lat = np.array([m.latitude for _, m in fixes])
-        en = self.map.projection.to_utm_array(lon, lat)
+        projection = self.map.projection
+        en: list[tuple[float, float]]
+        if len(fixes) <= _FEW:  # pyproj's call per point costs less than its array call
+            en = [projection.to_utm(m.longitude, m.latitude) for _, m in fixes]
+        else:
+            lon = np.array([m.longitude for _, m in fixes])
+            lat = np.array([m.latitude for _, m in fixes])
+            en = projection.to_utm_array(lon, lat).tolist()
         placed: list[_Answer | None] = []
         start = 0
         while start < len(fixes):  # runs in which each user has at most one fix
@@ -128,13 +134,13 @@ class Engine:
             start = end
         return self._answers(placed)
 
-    def _fix(self, m: GpsMeasurement, en: np.ndarray) -> Fix:
+    def _fix(self, m: GpsMeasurement, en: tuple[float, float]) -> Fix:
         """A measurement in the map's frame: heading from true north to grid north, the
         receiver's own accuracy (a horizontal 1-sigma radius) to a 1-sigma per axis."""
         return Fix(
             t=m.timestamp / 1000.0,
-            e=float(en[0]),
-            n=float(en[1]),
+            e=en[0],
+            n=en[1],
             speed=m.speed,
             heading=math.radians(m.heading) - self._convergence,
             accuracy=None if m.accuracy is None else m.accuracy / math.sqrt(2),
@@ -385,15 +391,20 @@ class Engine:
         found = [a for a in placed if a is not None]
         if not found:
             return [None] * len(placed)
-        xy = np.array([a.point for a in found], dtype=float)
-        lonlat = self.map.projection.to_wgs84_array(xy[:, 0], xy[:, 1])
+        projection = self.map.projection
+        lonlat: list[tuple[float, float]]
+        if len(found) <= _FEW:
+            lonlat = [projection.to_wgs84(*a.point.tolist()) for a in found]
+        else:
+            xy = np.array([a.point for a in found], dtype=float)
+            lonlat = projection.to_wgs84_array(xy[:, 0], xy[:, 1]).tolist()
         out: list[CorrectedPosition | None] = []
         k = 0
         for a in placed:
             if a is None:
                 out.append(None)
                 continue
-            lon, lat = float(lonlat[k, 0]), float(lonlat[k, 1])
+            lon, lat = lonlat[k]
             k += 1
             out.append(
                 CorrectedPosition(

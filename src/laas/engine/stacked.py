@@ -62,13 +62,26 @@ def evidence(
     a = np.matmul(alpha, transition) * fit[:, None, :]
     s = sigma[:, None, None]
     s_wide = np.sqrt(s * s + wide * wide)
-    like = off_lane + (
-        (1.0 - share) * _K / s * np.exp(-0.5 * (residual / s) ** 2)
-        + share * _K / s_wide * np.exp(-0.5 * (residual / s_wide) ** 2)
-    )
-    joint = a * like ** weight[:, None, None]
+    # like = eps + (1 - pi) K / s exp(-(r / s)^2 / 2) + pi K / s_w exp(-(r / s_w)^2 / 2),
+    # worked in place on two (n, H, L) arrays (the same values as written out)
+    like = residual / s
+    like *= like
+    like *= -0.5
+    np.exp(like, out=like)
+    like *= (1.0 - share) * _K / s
+    broad = residual / s_wide
+    broad *= broad
+    broad *= -0.5
+    np.exp(broad, out=broad)
+    broad *= share * _K / s_wide
+    like += broad
+    like += off_lane
+    # joint = a like^w, c = sum_l joint, alpha' = joint / c
+    joint = np.power(like, weight[:, None, None], out=like)
+    joint *= a
     c = np.maximum(joint.sum(axis=2), 1e-300)
-    return joint / c[:, :, None], np.log(c)
+    joint /= c[:, :, None]
+    return joint, np.log(c)
 
 
 def lanes_and_conditionals(

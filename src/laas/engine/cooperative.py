@@ -347,6 +347,28 @@ class CooperativeLaneFilter(LaneFilter):
         traits = self._traits.get(segment.id)
         if traits is None:
             traits = self._traits[segment.id] = LaneTraits(segment.lanes)
+        offsets = segment.lane_offsets_many(np.array(stations))
+        fits, transitions = [], []
+        for i, at in enumerate(offsets.tolist()):
+            # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
+            # and its type's speeds.
+            fit = motion_fit_of(traits, alongs[i], speeds[i])
+            # ... and never into a lane that does not fit the motion (its share stays in
+            # the lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest
+            # stays.
+            top = max(fit)
+            fits.append(fit)
+            transitions.append(
+                lane_transition_of(
+                    at,
+                    laterals[i],
+                    dts[i],
+                    c.lane_change_rate,
+                    c.max_lane_change,
+                    [f / top for f in fit],
+                )
+            )
+        fit_all, transition_all = np.array(fits), np.array(transitions)
         out = []
         for i, (user, track, _, _) in enumerate(work):
             area, normal = areas[i], normals[i]
@@ -357,22 +379,6 @@ class CooperativeLaneFilter(LaneFilter):
             # answer read nothing else, and the margin keeps fresh the cells the posterior
             # could grow into before this user's next fix. The rest of the table stays.
             lo, hi = area.span(normal)
-            offsets = segment.lane_offsets(stations[i])
-            # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
-            # and its type's speeds.
-            fit = motion_fit_of(traits, alongs[i], speeds[i])
-            # ... and never into a lane that does not fit the motion (its share stays in
-            # the lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest
-            # stays.
-            top = max(fit)
-            transition = lane_transition_of(
-                offsets.tolist(),
-                laterals[i],
-                dts[i],
-                c.lane_change_rate,
-                c.max_lane_change,
-                [f / top for f in fit],
-            )
             out.append(
                 _User(
                     user,
@@ -384,9 +390,9 @@ class CooperativeLaneFilter(LaneFilter):
                     lo,
                     hi,
                     ds[i],
-                    offsets,
-                    np.array(transition),
-                    np.array(fit) ** memories[i],
+                    offsets[i],
+                    transition_all[i],
+                    fit_all[i] ** memories[i],
                     sigmas[i],
                     weights[i],
                 )

@@ -472,7 +472,7 @@ class CooperativeLaneFilter(LaneFilter):
         w_lane = 1.0 / c.sigma_lane**2
         covs = cov.tolist()
         stations, d_now, w_ms = [], [], []
-        tangents: list[np.ndarray] = []
+        tangent_list: list[tuple[float, float]] = []
         for k, u in enumerate(users):
             x, p = u.track.moments()
             pe, pn = x[0], x[1]
@@ -490,7 +490,7 @@ class CooperativeLaneFilter(LaneFilter):
             stations.append(s_now)
             d_now.append(d)
             w_ms.append(1.0 / max(var_m, 1e-6))
-            tangents.append(np.array((t_e, t_n)))
+            tangent_list.append((t_e, t_n))
         offsets = segment.lane_offsets_many(np.array(stations))
         rows = np.arange(len(users))
         o = offsets[rows, lane]
@@ -503,25 +503,21 @@ class CooperativeLaneFilter(LaneFilter):
         shift = offsets - o[:, None]
         mean_shift = (marginal * shift).sum(axis=1)
         spread = (marginal * (shift - mean_shift[:, None]) ** 2).sum(axis=1)
-        out = []
-        for k, (o_k, m_k, v_k, l_k) in enumerate(
-            zip(o.tolist(), mean_shift.tolist(), spread.tolist(), lane.tolist(), strict=True)
+        lanes = lane.tolist()
+        points, crosses = [], []
+        for k, (o_k, m_k, v_k) in enumerate(
+            zip(o.tolist(), mean_shift.tolist(), spread.tolist(), strict=True)
         ):
             w_m = w_ms[k]
             fused = (w_lane * o_k + w_m * d_now[k]) / (w_lane + w_m)
-            point = np.array(segment.point(stations[k], fused + m_k))
-            out.append(
-                Placement(
-                    l_k,
-                    float(marginal[k, l_k]),
-                    point,
-                    cov[k],
-                    math.sqrt(1.0 / (w_lane + w_m) + v_k),
-                    tangents[k],
-                    stations[k],
-                )
-            )
-        return out
+            points.append(segment.point(stations[k], fused + m_k))
+            crosses.append(math.sqrt(1.0 / (w_lane + w_m) + v_k))
+        point, tangent = np.array(points), np.array(tangent_list)
+        p_lane = marginal[rows, lane].tolist()
+        return [
+            Placement(lanes[k], p_lane[k], point[k], cov[k], crosses[k], tangent[k], stations[k])
+            for k in range(len(users))
+        ]
 
     def _table(
         self,

@@ -46,3 +46,18 @@ def test_a_region_of_one_sends_no_area_notes(hamburg_map: HdMap) -> None:
         fixes = hamburg_fixes(hamburg_map, 5)
         service.handle_many([_request(m, k) for k, m in enumerate(fixes)])
         assert len(sent) == expected, (len(regions), len(sent))
+
+
+def test_the_feed_thread_is_woken_for_a_batch_only_with_a_page_connected(
+    hamburg_map: HdMap,
+) -> None:
+    service = LaasService(hamburg_map)
+    feed = Feed(service)  # not started: only the dispatch thread's side is called
+    fixes = hamburg_fixes(hamburg_map, 2)
+    answers = service.engine.process_many([("p1", m) for m in fixes])
+    seen = [Observation("p1", m, a) for m, a in zip(fixes, answers, strict=True) if a]
+    feed.observe(seen)
+    assert not feed._wake.is_set()  # nobody watches: taken at the next stats tick
+    feed.subscribe()
+    feed.observe(seen)
+    assert feed._wake.is_set()

@@ -154,6 +154,7 @@ class CommonError:
         memory: float | None = None,
     ) -> None:
         self.centre = centre.copy()
+        self.centre_xy: tuple[float, float] = (float(centre[0]), float(centre[1]))
         half = 3.5 * prior_sigma  # wide enough that no ridge of likely values is clipped
         self._res = resolution
         self._axis = np.arange(-half, half + resolution / 2, resolution)
@@ -206,9 +207,10 @@ class CommonError:
         ae, an = self._axis[i0:i1], self._axis[j0:j1]
         we, wn = w.sum(axis=1), w.sum(axis=0)
         me, mn = float(we @ ae), float(wn @ an)
-        cee = float(we @ (ae - me) ** 2)
-        cnn = float(wn @ (an - mn) ** 2)
-        cen = float((ae - me) @ w @ (an - mn))
+        de, dn = ae - me, an - mn
+        cee = float(we @ de**2)
+        cnn = float(wn @ dn**2)
+        cen = float(de @ w @ dn)
         own = self._res**2 / 12.0
         return np.array([me, mn]), np.array([[cee + own, cen], [cen, cnn + own]])
 
@@ -341,6 +343,11 @@ class CommonError:
     def cell_var(self) -> float:
         """A grid cell's own variance of b per axis, res^2 / 12."""
         return self._res**2 / 12.0
+
+    def taken(self, normal: np.ndarray) -> tuple[int, int]:
+        """The u-grid cells [lo, hi) that n . b takes over the window, without `span`'s
+        margin."""
+        return self._cells_and_span(normal)[1]
 
     def span(self, normal: np.ndarray) -> tuple[int, int]:
         """The u-grid cells [lo, hi) that n . b takes over the window: the only values of
@@ -728,10 +735,12 @@ class CommonErrorField:
         best: CommonError | None = None
         best_d = self.size / 2.0
         ci, cj = self._cell(xy)
+        x, y = float(xy[0]), float(xy[1])
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 for area in self._cells.get((ci + di, cj + dj), ()):
-                    dist = float(np.hypot(*(area.centre - xy)))
+                    cx, cy = area.centre_xy
+                    dist = float(np.hypot(cx - x, cy - y))
                     if dist <= best_d:
                         best, best_d = area, dist
         if best is None:

@@ -80,7 +80,7 @@ from laas.engine.handover import AreaState, HandoverError, LaneState
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import MULTIPATH_SIGMA, Track
-from laas.engine.transition import LaneTraits, lane_transition_many, motion_fit_many
+from laas.engine.transition import LaneTraits, lane_transition_of, motion_fit_of
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -94,6 +94,7 @@ _CARRY_MIX = 0.05  # share of a uniform lane belief mixed in when entering a new
 _MULTIPATH_SHARE = 0.05  # the default of EngineConfig.track_multipath, which the tracks use
 _HANDED_MASS = 1e-9  # a hand-over carries the lane table where p(u) > this * its peak
 _HANDED_MARGIN = 10  # and this many u-cells (1 m) on either side
+_FEW_FRAMES = 96  # a road element's users whose fixes take the frame one by one
 
 
 @dataclass
@@ -263,13 +264,15 @@ class CooperativeLaneFilter(LaneFilter):
     def _prepare(self, work: Sequence[tuple[str, Track, Segment, float]]) -> list[_User]:
         """What the users of one road element bring to the batch: their tables, the
         prediction's transition and motion fit, their fixes' offsets and evidence
-        widths (module docstring), as arrays over the users."""
+        widths (module docstring). A road element's users in a batch are few (one, one
+        at a time), so what is a number per user is worked out in plain floats, user by
+        user; only what is an array over the lanes is stacked."""
         c = self.config
         segment = work[0][2]
-        tracks = [track for _, track, _, _ in work]
-        position = np.array([track.position for track in tracks])
-        velocity = np.array([track.velocity for track in tracks])
-        dt = np.array([track.dt for track in tracks])
+        length = segment.length
+        n = len(work)
+        lasting = c.sigma_lane**2 + c.sigma_receiver**2 + _MULTIPATH_SHARE * MULTIPATH_SIGMA**2
+        spread = c.sigma_lane**2 + c.sigma_receiver**2
         # The road's frame at the fix p (the fix itself, not the filtered position:
         # module docstring): there the offset measured with b = 0 is
         # d = d(p), for every b alike, so a curve, whose normal turns under the user,
@@ -278,94 +281,120 @@ class CooperativeLaneFilter(LaneFilter):
         # of its last tangent: a user turning there would seem to sweep across the lanes.
         # There the frame is taken where the user is, at its fix less the area's current
         # estimate of the common error, q = p - b^, and linear about q, d = d(q) + n . b^.
-        areas = [self._errors.at(p) for p in position]
-        b_hat = np.array([area.b for area in areas])
-        fixed = np.array([(track.last_fix.e, track.last_fix.n) for track in tracks])
-        frame = segment.frame_many(fixed)
-        beyond = (frame[:, 0] < 0.0) | (frame[:, 0] > segment.length)
-        if beyond.any():
-            frame[beyond] = segment.frame_many(fixed[beyond] - b_hat[beyond])
-        tangent = segment.tangent_many(frame[:, 0])
-        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-        d = frame[:, 1] + np.where(beyond, _dot(normal, b_hat), 0.0)
-        offsets = segment.lane_offsets_many(frame[:, 0])
-        # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
-        # and its type's speeds.
+        fixed = [(track.last_fix.e, track.last_fix.n) for _, track, _, _ in work]
+        frames = (
+            [segment.frame(e, n_) for e, n_ in fixed]
+            if n <= _FEW_FRAMES
+            else segment.frame_many(np.array(fixed)).tolist()
+        )
+        areas: list[CommonError] = []
+        positions: list[np.ndarray] = []
+        normals: list[np.ndarray] = []
+        stations, ds, alongs, speeds, laterals, dts, memories, sigmas, weights = (
+            [0.0] * n for _ in range(9)
+        )
+        for i, (_, track, _, _) in enumerate(work):
+            position = track.position
+            area = self._errors.at(position)
+            s, d = frames[i]
+            fix = track.last_fix
+            beyond = s < 0.0 or s > length
+            if beyond:
+                b_e, b_n = area.b.tolist()
+                s, d = segment.frame(fix.e - b_e, fix.n - b_n)
+            t_e, t_n = segment.tangent_at(s)
+            n_e, n_n = t_n, -t_e
+            if beyond:
+                d = d + (n_e * b_e + n_n * b_n)
+            x, p = track.moments()
+            v_e, v_n = x[2], x[3]
+            # Lane changes: announced by lateral motion beyond its own noise (2 sigma),
+            # n' Cov(v) n the velocity's variance across the road
+            v_lat = v_e * n_e + v_n * n_n
+            var = n_e * n_e * p[2][2] + 2.0 * n_e * n_n * p[2][3] + n_n * n_n * p[3][3]
+            noise = 2.0 * math.sqrt(max(var, 0.0))
+            dt = track.dt
+            # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] F[l]^(dt / tau). Motion is
+            # a lasting trait of the user, not news at every fix: it counts once per
+            # tau = motion_memory seconds.
+            memories[i] = min(1.0, dt / c.motion_memory)
+            # Evidence of the fix: eps + N~(d - u - o_l) on the u-grid, with
+            # s^2 = s_lane^2 + s_rx^2 + s_fix^2 (s_rx: the receiver's own lasting error).
+            s_fix = c.sigma_pos if fix.accuracy is None else fix.accuracy
+            sigmas[i] = math.sqrt(spread + s_fix**2)
+            # A fix's error is partly its own (s_fix, independent from fix to fix) and
+            # partly lasting: the user's place in its lane, the receiver's bias and its
+            # multipath, s_last^2 = s_lane^2 + s_rx^2 + pi s_mp^2, which persist for about
+            # evidence_interval seconds. Of n = evidence_interval / dt fixes that share a
+            # lasting error, the mean has variance s_last^2 + s_fix^2 / n: they are worth
+            # n_eff = n (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2) independent fixes,
+            # so each counts as like^w with
+            #     w = n_eff / n = (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2)  (at most 1):
+            # a noisy receiver's fixes count nearly in full, a precise one's once per
+            # interval.
+            if dt <= 0.0:
+                weights[i] = 1.0
+            else:
+                shared = c.evidence_interval / max(dt, 1e-9)
+                weights[i] = min(1.0, (lasting + s_fix**2) / (shared * lasting + s_fix**2))
+            areas.append(area)
+            positions.append(position)
+            normals.append(np.array((n_e, n_n)))
+            stations[i], ds[i], dts[i] = s, d, dt
+            alongs[i] = v_e * t_e + v_n * t_n
+            speeds[i] = fix.speed
+            laterals[i] = math.copysign(max(0.0, abs(v_lat) - noise), v_lat)
         traits = self._traits.get(segment.id)
         if traits is None:
             traits = self._traits[segment.id] = LaneTraits(segment.lanes)
-        speed = np.array([track.last_fix.speed for track in tracks])
-        fit = motion_fit_many(traits, _dot(velocity, tangent), speed)
-        # Lane changes: announced by lateral motion beyond its own noise (2 sigma), and
-        # never into a lane that does not fit the motion (its share stays in the lane):
-        # T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest stays.
-        v_lat = _dot(velocity, normal)
-        v_cov = np.array([track.velocity_cov for track in tracks])
-        noise = 2.0 * np.sqrt(np.maximum(_quad(normal, v_cov), 0.0))
-        lateral = np.copysign(np.maximum(0.0, np.abs(v_lat) - noise), v_lat)
-        right, left = lane_transition_many(
-            offsets, lateral, dt, c.lane_change_rate, c.max_lane_change
-        )
-        scale = fit / fit.max(axis=1, keepdims=True)
-        lanes = offsets.shape[1]
-        step = np.arange(lanes - 1)
-        transition = np.zeros((len(work), lanes, lanes))
-        transition[:, step, step + 1] = right * scale[:, 1:]
-        transition[:, step + 1, step] = left * scale[:, :-1]
-        every = np.arange(lanes)
-        transition[:, every, every] = 1.0 - transition.sum(axis=2)
-        # Prediction: a(u, l) = sum_k alpha(u, k) T[k, l] F[l]^(dt / tau). Motion is a
-        # lasting trait of the user, not news at every fix: it counts once per
-        # tau = motion_memory seconds.
-        memory = np.minimum(1.0, dt / c.motion_memory)
-        # Evidence of the fix: eps + N~(d - u - o_l) on the u-grid, with
-        # s^2 = s_lane^2 + s_rx^2 + s_fix^2 (s_rx: the receiver's own lasting error).
-        s_fix = np.array(
-            [c.sigma_pos if t.last_fix.accuracy is None else t.last_fix.accuracy for t in tracks]
-        )
-        sigma = np.sqrt(c.sigma_lane**2 + c.sigma_receiver**2 + s_fix**2)
-        # A fix's error is partly its own (s_fix, independent from fix to fix) and partly
-        # lasting: the user's place in its lane, the receiver's bias and its multipath,
-        # s_last^2 = s_lane^2 + s_rx^2 + pi s_mp^2, which persist for about
-        # evidence_interval seconds. Of n = evidence_interval / dt fixes that share a
-        # lasting error, the mean has variance s_last^2 + s_fix^2 / n: they are worth
-        # n_eff = n (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2) independent fixes, so
-        # each counts as like^w with
-        #     w = n_eff / n = (s_last^2 + s_fix^2) / (n s_last^2 + s_fix^2)  (at most 1):
-        # a noisy receiver's fixes count nearly in full, a precise one's once per interval.
-        lasting = c.sigma_lane**2 + c.sigma_receiver**2 + _MULTIPATH_SHARE * MULTIPATH_SIGMA**2
-        shared = c.evidence_interval / np.maximum(dt, 1e-9)
-        weight = np.where(
-            dt <= 0.0,
-            1.0,
-            np.minimum(1.0, (lasting + s_fix**2) / (shared * lasting + s_fix**2)),
-        )
+        offsets = segment.lane_offsets_many(np.array(stations))
+        fits, transitions = [], []
+        for i, at in enumerate(offsets.tolist()):
+            # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
+            # and its type's speeds.
+            fit = motion_fit_of(traits, alongs[i], speeds[i])
+            # ... and never into a lane that does not fit the motion (its share stays in
+            # the lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest
+            # stays.
+            top = max(fit)
+            fits.append(fit)
+            transitions.append(
+                lane_transition_of(
+                    at,
+                    laterals[i],
+                    dts[i],
+                    c.lane_change_rate,
+                    c.max_lane_change,
+                    [f / top for f in fit],
+                )
+            )
+        fit_all, transition_all = np.array(fits), np.array(transitions)
         out = []
         for i, (user, track, _, _) in enumerate(work):
-            area = areas[i]
-            alpha = self._table(user, segment, area, normal[i], position[i])
-            self._lanes[user] = _Lanes(segment, area, normal[i], alpha)
+            area, normal = areas[i], normals[i]
+            alpha = self._table(user, segment, area, normal, positions[i])
+            self._lanes[user] = _Lanes(segment, area, normal, alpha)
             # Only the values of u = n . b that the posterior of b still holds, [lo, hi),
             # are worked on (`CommonError.span`, with a margin): the update of b and the
             # answer read nothing else, and the margin keeps fresh the cells the posterior
             # could grow into before this user's next fix. The rest of the table stays.
-            lo, hi = area.span(normal[i])
+            lo, hi = area.span(normal)
             out.append(
                 _User(
                     user,
                     track,
                     segment,
                     area,
-                    normal[i],
+                    normal,
                     alpha,
                     lo,
                     hi,
-                    float(d[i]),
+                    ds[i],
                     offsets[i],
-                    transition[i],
-                    fit[i] ** memory[i],
-                    float(sigma[i]),
-                    float(weight[i]),
+                    transition_all[i],
+                    fit_all[i] ** memories[i],
+                    sigmas[i],
+                    weights[i],
                 )
             )
         return out
@@ -440,18 +469,31 @@ class CooperativeLaneFilter(LaneFilter):
             s_m^2 = n' (P_track + P_b*) n."""
         c = self.config
         segment = users[0].segment
-        position = np.array([u.track.position for u in users])
-        p_cov = np.array([u.track.position_cov for u in users])
-        frame = segment.frame_many(position - b)
-        s_now, d_now = frame[:, 0], frame[:, 1]
-        tangent = segment.tangent_many(s_now)
-        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
-        offsets = segment.lane_offsets_many(s_now)
+        w_lane = 1.0 / c.sigma_lane**2
+        covs = cov.tolist()
+        stations, d_now, w_ms = [], [], []
+        tangent_list: list[tuple[float, float]] = []
+        for k, u in enumerate(users):
+            x, p = u.track.moments()
+            pe, pn = x[0], x[1]
+            be, bn = b[k].tolist()
+            s_now, d = segment.frame(pe - be, pn - bn)
+            t_e, t_n = segment.tangent_at(s_now)
+            n_e, n_n = t_n, -t_e
+            (c00, c01), (_, c11) = covs[k]
+            # s_m^2 = n' (P_track + P_b*) n
+            var_m = (
+                n_e * n_e * (p[0][0] + c00)
+                + 2.0 * n_e * n_n * (p[0][1] + c01)
+                + n_n * n_n * (p[1][1] + c11)
+            )
+            stations.append(s_now)
+            d_now.append(d)
+            w_ms.append(1.0 / max(var_m, 1e-6))
+            tangent_list.append((t_e, t_n))
+        offsets = segment.lane_offsets_many(np.array(stations))
         rows = np.arange(len(users))
         o = offsets[rows, lane]
-        var_m = _quad(normal, p_cov + cov)
-        w_lane, w_m = 1.0 / c.sigma_lane**2, 1.0 / np.maximum(var_m, 1e-6)
-        fused = (w_lane * o + w_m * d_now) / (w_lane + w_m)
         # Across the road the position is the posterior mean over lanes: on lane l the
         # user lies at its centre fused with the measurement as on l*, fused_l = fused +
         # o_l - o_l*, so  d = fused + sum_l P(l) (o_l - o_l*).  Sure of its lane, that is
@@ -461,19 +503,20 @@ class CooperativeLaneFilter(LaneFilter):
         shift = offsets - o[:, None]
         mean_shift = (marginal * shift).sum(axis=1)
         spread = (marginal * (shift - mean_shift[:, None]) ** 2).sum(axis=1)
-        cross = np.sqrt(1.0 / (w_lane + w_m) + spread)
-        point = segment.point_many(s_now, fused + mean_shift)
+        lanes = lane.tolist()
+        points, crosses = [], []
+        for k, (o_k, m_k, v_k) in enumerate(
+            zip(o.tolist(), mean_shift.tolist(), spread.tolist(), strict=True)
+        ):
+            w_m = w_ms[k]
+            fused = (w_lane * o_k + w_m * d_now[k]) / (w_lane + w_m)
+            points.append(segment.point(stations[k], fused + m_k))
+            crosses.append(math.sqrt(1.0 / (w_lane + w_m) + v_k))
+        point, tangent = np.array(points), np.array(tangent_list)
+        p_lane = marginal[rows, lane].tolist()
         return [
-            Placement(
-                int(lane[k]),
-                float(marginal[k, lane[k]]),
-                point[k],
-                cov[k],
-                float(cross[k]),
-                tangent[k],
-                float(s_now[k]),
-            )
-            for k in rows.tolist()
+            Placement(lanes[k], p_lane[k], point[k], cov[k], crosses[k], tangent[k], stations[k])
+            for k in range(len(users))
         ]
 
     def _table(
@@ -517,19 +560,23 @@ def _reproject(
     where no mass lies, the user's marginal lane probabilities."""
     w, idx_old = area.weights_and_cells(n_old)
     _, idx_new = area.weights_and_cells(n_new)
-    flat_new, flat_w = idx_new.ravel(), w.ravel()
+    # only the u'-cells [lo, hi) that n_new . b takes over the window get any mass
+    lo, hi = area.taken(n_new)
+    flat_new, flat_w = idx_new.ravel() - lo, w.ravel()
     rows = alpha[idx_old.ravel()] * flat_w[:, None]  # (cells, L)
-    size = area.u.size
     num = np.stack(
-        [np.bincount(flat_new, weights=rows[:, k], minlength=size) for k in range(alpha.shape[1])],
+        [
+            np.bincount(flat_new, weights=rows[:, k], minlength=hi - lo)
+            for k in range(alpha.shape[1])
+        ],
         axis=1,
     )
-    den = np.bincount(flat_new, weights=flat_w, minlength=size)
+    den = np.bincount(flat_new, weights=flat_w, minlength=hi - lo)
     marginal = num.sum(axis=0)
     marginal = marginal / marginal.sum()
-    out = np.tile(marginal, (size, 1))
+    out = np.tile(marginal, (area.u.size, 1))
     held = den > 1e-12
-    out[held] = num[held] / den[held, None]
+    out[lo:hi][held] = num[held] / den[held, None]
     return out
 
 

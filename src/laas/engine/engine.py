@@ -48,6 +48,7 @@ def make_lane_filter(config: EngineConfig) -> LaneFilter:
 
 
 _HANDOVER_REACH = 10_000.0  # m: a handed-over track this far off the map is not ours
+_FEW = 4  # fixes projected one by one (`laas.map.geo`: the same values as its array call)
 
 
 @dataclass
@@ -110,9 +111,14 @@ class Engine:
         """
         if not fixes:
             return []
-        lon = np.array([m.longitude for _, m in fixes])
-        lat = np.array([m.latitude for _, m in fixes])
-        en = self.map.projection.to_utm_array(lon, lat)
+        projection = self.map.projection
+        en: list[tuple[float, float]]
+        if len(fixes) <= _FEW:  # pyproj's call per point costs less than its array call
+            en = [projection.to_utm(m.longitude, m.latitude) for _, m in fixes]
+        else:
+            lon = np.array([m.longitude for _, m in fixes])
+            lat = np.array([m.latitude for _, m in fixes])
+            en = projection.to_utm_array(lon, lat).tolist()
         placed: list[_Answer | None] = []
         start = 0
         while start < len(fixes):  # runs in which each user has at most one fix
@@ -129,13 +135,13 @@ class Engine:
             start = end
         return self._answers(placed)
 
-    def _fix(self, m: GpsMeasurement, en: np.ndarray) -> Fix:
+    def _fix(self, m: GpsMeasurement, en: tuple[float, float]) -> Fix:
         """A measurement in the map's frame: heading from true north to grid north, the
         receiver's own accuracy (a horizontal 1-sigma radius) to a 1-sigma per axis."""
         return Fix(
             t=m.timestamp / 1000.0,
-            e=float(en[0]),
-            n=float(en[1]),
+            e=en[0],
+            n=en[1],
             speed=m.speed,
             heading=math.radians(m.heading) - self._convergence,
             accuracy=None if m.accuracy is None else m.accuracy / math.sqrt(2),
@@ -339,8 +345,13 @@ class Engine:
         # default mode: the receiver's own lasting error s_rx, which the track does not
         # see, lies along the road as much as across it
         lasting = self.config.sigma_receiver**2 if self.config.mode == "default" else 0.0
-        cov = track.position_cov + placed.common_cov
-        along = math.sqrt(float(tangent @ cov @ tangent) + lasting)
+        # t' C t, C = P_track + P_b, in plain floats (numpy's calls on 2 x 2 arrays cost
+        # more than the arithmetic)
+        t_e, t_n = tangent.tolist()
+        p = track.moments()[1]
+        (b00, b01), (b10, b11) = placed.common_cov.tolist()
+        c00, c01, c10, c11 = p[0][0] + b00, p[0][1] + b01, p[1][0] + b10, p[1][1] + b11
+        along = math.sqrt((t_e * c00 + t_n * c10) * t_e + (t_e * c01 + t_n * c11) * t_n + lasting)
         lane = placed.lane
         probability = placed.probability
         if self.config.mode == "default":
@@ -348,8 +359,9 @@ class Engine:
             if station is None:
                 station, _ = segment.frame(float(point[0]), float(point[1]))
             probability *= self._on_element(segment, station, along)
-            normal = np.array([tangent[1], -tangent[0]])
-            var_cross = float(normal @ cov @ normal) + lasting
+            # n' C n + s_rx^2 across the road, n = (t_n, -t_e)
+            n_e, n_n = t_n, -t_e
+            var_cross = (n_e * c00 + n_n * c10) * n_e + (n_e * c01 + n_n * c11) * n_n + lasting
             probability *= element_share(
                 self.map,
                 segment,
@@ -399,15 +411,20 @@ class Engine:
         found = [a for a in placed if a is not None]
         if not found:
             return [None] * len(placed)
-        xy = np.array([a.point for a in found], dtype=float)
-        lonlat = self.map.projection.to_wgs84_array(xy[:, 0], xy[:, 1])
+        projection = self.map.projection
+        lonlat: list[tuple[float, float]]
+        if len(found) <= _FEW:
+            lonlat = [projection.to_wgs84(*a.point.tolist()) for a in found]
+        else:
+            xy = np.array([a.point for a in found], dtype=float)
+            lonlat = projection.to_wgs84_array(xy[:, 0], xy[:, 1]).tolist()
         out: list[CorrectedPosition | None] = []
         k = 0
         for a in placed:
             if a is None:
                 out.append(None)
                 continue
-            lon, lat = float(lonlat[k, 0]), float(lonlat[k, 1])
+            lon, lat = lonlat[k]
             k += 1
             out.append(
                 CorrectedPosition(

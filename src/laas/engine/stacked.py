@@ -29,6 +29,7 @@ import numpy as np
 __all__ = ["evidence", "lanes_and_conditionals", "pad"]
 
 _K = 1.0 / math.sqrt(2.0 * math.pi)
+_SECOND = np.array([3, 4, 4, 5])  # the columns of E[b_e^2], E[b_e b_n], E[b_n^2] in a 2 x 2
 
 
 def pad(blocks: Sequence[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
@@ -61,13 +62,26 @@ def evidence(
     a = np.matmul(alpha, transition) * fit[:, None, :]
     s = sigma[:, None, None]
     s_wide = np.sqrt(s * s + wide * wide)
-    like = off_lane + (
-        (1.0 - share) * _K / s * np.exp(-0.5 * (residual / s) ** 2)
-        + share * _K / s_wide * np.exp(-0.5 * (residual / s_wide) ** 2)
-    )
-    joint = a * like ** weight[:, None, None]
+    # like = eps + (1 - pi) K / s exp(-(r / s)^2 / 2) + pi K / s_w exp(-(r / s_w)^2 / 2),
+    # worked in place on two (n, H, L) arrays (the same values as written out)
+    like = residual / s
+    like *= like
+    like *= -0.5
+    np.exp(like, out=like)
+    like *= (1.0 - share) * _K / s
+    broad = residual / s_wide
+    broad *= broad
+    broad *= -0.5
+    np.exp(broad, out=broad)
+    broad *= share * _K / s_wide
+    like += broad
+    like += off_lane
+    # joint = a like^w, c = sum_l joint, alpha' = joint / c
+    joint = np.power(like, weight[:, None, None], out=like)
+    joint *= a
     c = np.maximum(joint.sum(axis=2), 1e-300)
-    return joint / c[:, :, None], np.log(c)
+    joint /= c[:, :, None]
+    return joint, np.log(c)
 
 
 def lanes_and_conditionals(
@@ -90,9 +104,10 @@ def lanes_and_conditionals(
     sums = np.matmul(g[:, None, :], moments)[:, 0, :]  # (n, 6)
     held = sums[:, 0] > 0.0
     sums /= np.where(held, sums[:, 0], 1.0)[:, None]
-    me, mn = sums[:, 1], sums[:, 2]
-    cov = np.empty((len(lane), 2, 2))
-    cov[:, 0, 0] = sums[:, 3] - me * me + cell_var
-    cov[:, 1, 1] = sums[:, 5] - mn * mn + cell_var
-    cov[:, 0, 1] = cov[:, 1, 0] = sums[:, 4] - me * mn
-    return marginal, lane, np.stack([me, mn], axis=1), cov, held
+    mean = sums[:, 1:3]
+    # E[b b'] - E[b] E[b]' (+ res^2 / 12 on the diagonal), the second moments laid out
+    # as 2 x 2 from (ee, en, en, nn)
+    cov = sums[:, _SECOND].reshape(-1, 2, 2) - mean[:, :, None] * mean[:, None, :]
+    cov[:, 0, 0] += cell_var
+    cov[:, 1, 1] += cell_var
+    return marginal, lane, mean.copy(), cov, held

@@ -220,6 +220,12 @@ class Track:
         """2x2 covariance of the position, m^2."""
         return self._P[:2, :2].copy()
 
+    def moments(self) -> tuple[list[float], list[list[float]]]:
+        """(x, P) as plain floats, for per-user arithmetic (no arrays made)."""
+        x: list[float] = self._x.tolist()
+        p: list[list[float]] = self._P.tolist()
+        return x, p
+
     def state(self) -> tuple[np.ndarray, np.ndarray]:
         """(x (4,), P (4, 4)) copies: what a hand-over carries (`laas.engine.handover`)."""
         return self._x.copy(), self._P.copy()
@@ -242,11 +248,6 @@ class Track:
 
 _EYE4 = np.eye(4)
 _Q_SCALE = np.array([0.25, 0.5, 1.0])  # Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
-_Q_POWERS = np.array([4.0, 3.0, 2.0])
-_Q_PLACES = np.zeros((3, 16))  # where each of the three coefficients goes in Q, flat
-for _i in range(2):
-    _Q_PLACES[0, 5 * _i] = _Q_PLACES[1, 4 * _i + _i + 2] = _Q_PLACES[1, 4 * (_i + 2) + _i] = 1.0
-    _Q_PLACES[2, 5 * (_i + 2)] = 1.0
 
 
 def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
@@ -256,20 +257,22 @@ def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
     comes from a velocity vector whose every component carries it (so a slow user's
     heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n',  n = (cos h, -sin h)."""
     sigma_h = math.radians(config.sigma_heading)
+    v2 = config.sigma_vel**2 + _MIN_VELOCITY_VAR
     rows = []
     for fix in fixes:
         n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
         h2 = (fix.speed * sigma_h) ** 2
         p2 = (fix.accuracy if fix.accuracy is not None else config.sigma_pos) ** 2
-        rows.append((p2, h2 * n_e * n_e, h2 * n_e * n_n, h2 * n_n * n_n))
-    v = np.array(rows)
-    v2 = config.sigma_vel**2 + _MIN_VELOCITY_VAR
-    r = np.zeros((len(rows), 4, 4))
-    r[:, 0, 0] = r[:, 1, 1] = v[:, 0]
-    r[:, 2, 2] = v2 + v[:, 1]
-    r[:, 2, 3] = r[:, 3, 2] = v[:, 2]
-    r[:, 3, 3] = v2 + v[:, 3]
-    return r
+        en = h2 * n_e * n_n
+        # fmt: off
+        rows.append((
+            p2, 0.0, 0.0, 0.0,
+            0.0, p2, 0.0, 0.0,
+            0.0, 0.0, v2 + h2 * n_e * n_e, en,
+            0.0, 0.0, en, v2 + h2 * n_n * n_n,
+        ))
+        # fmt: on
+    return np.array(rows).reshape(-1, 4, 4)
 
 
 def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
@@ -290,15 +293,21 @@ def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     config = tracks[0]._config
     x = np.array([tr._x for tr in tracks])
     p = np.array([tr._P for tr in tracks])
-    dts = np.array([f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)])
+    steps = [f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)]
+    dts = np.array(steps)
     # F x and F P F', F = [[I, dt I], [0, I]]: the velocity's rows, then its columns,
     # added dt times to the position's (what the products with F's ones and zeros do)
     dt = dts[:, None]
     x[:, :2] += dt * x[:, 2:]
     p[:, :2, :] += dt[:, :, None] * p[:, 2:, :]
     p[:, :, :2] += dt[:, None, :] * p[:, :, 2:]
-    # + Q: its three coefficients q dt^4 / 4, q dt^3 / 2, q dt^2 placed by `_Q_PLACES`
-    p += ((config.sigma_accel**2 * _Q_SCALE) * dt**_Q_POWERS @ _Q_PLACES).reshape(-1, 4, 4)
+    # + Q: its three coefficients q dt^4 / 4, q dt^3 / 2, q dt^2
+    q4, q3, q2 = (config.sigma_accel**2 * _Q_SCALE).tolist()
+    q = []
+    for step in steps:
+        a, b, c = q4 * step**4.0, q3 * step**3.0, q2 * step**2.0
+        q.append((a, 0.0, b, 0.0, 0.0, a, 0.0, b, b, 0.0, c, 0.0, 0.0, b, 0.0, c))
+    p += np.array(q).reshape(-1, 4, 4)
     z = np.array(
         [
             [fx.e, fx.n, fx.speed * math.sin(fx.heading), fx.speed * math.cos(fx.heading)]

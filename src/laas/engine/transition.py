@@ -29,6 +29,7 @@ What the limits rule out is a car at speed on a sidewalk, a parking or a bicycle
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -40,9 +41,9 @@ __all__ = [
     "LaneTraits",
     "direction_likelihood",
     "lane_transition",
-    "lane_transition_many",
+    "lane_transition_of",
     "motion_fit",
-    "motion_fit_many",
+    "motion_fit_of",
     "speed_likelihood",
 ]
 
@@ -130,41 +131,56 @@ _DIRECTION_CODE = {"forward": 1.0, "backward": -1.0}
 
 
 class LaneTraits:
-    """The lanes of one road element as arrays, for `motion_fit_many`: each lane's
+    """The lanes of one road element as plain floats, for `motion_fit_of`: each lane's
     direction (+1 forward, -1 backward, 0 both) and its type's speed limits (v_max,
     v_width, floor; a type without limits takes v_max = inf, so S = 1)."""
 
     __slots__ = ("direction", "floor", "v_max", "v_width")
 
     def __init__(self, lanes: Sequence[Lane]) -> None:
-        self.direction = np.array([_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes])
-        limits = [SPEED_LIMITS.get(lane.type, (np.inf, 1.0, 1.0)) for lane in lanes]
-        self.v_max, self.v_width, self.floor = (np.array(col) for col in zip(*limits, strict=True))
+        self.direction = [_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes]
+        limits = [SPEED_LIMITS.get(lane.type, (math.inf, 1.0, 1.0)) for lane in lanes]
+        self.v_max, self.v_width, self.floor = (list(col) for col in zip(*limits, strict=True))
 
 
-def motion_fit_many(
-    traits: LaneTraits, along_speed: np.ndarray, speed: np.ndarray, wrong_way: float = 0.05
-) -> np.ndarray:
-    """`motion_fit` for (g,) users of one element: (g, L), F = D S as there."""
-    moving = np.abs(along_speed) >= _MOVING
+def motion_fit_of(
+    traits: LaneTraits, along_speed: float, speed: float, wrong_way: float = 0.05
+) -> list[float]:
+    """`motion_fit` for one user of an element, in plain floats: (L,) F = D S as there.
+    (A batch's users of one element are few; numpy's calls on arrays of a few lanes cost
+    more than the arithmetic.)"""
+    moving = abs(along_speed) >= _MOVING
     # against: the lane's direction opposes the motion along the element
-    against = moving[:, None] & (traits.direction[None, :] == -np.sign(along_speed)[:, None])
-    d = np.where(against, wrong_way, 1.0)
-    z = np.minimum((speed[:, None] - traits.v_max) / traits.v_width, 50.0)
-    s = traits.floor + (1.0 - traits.floor) / (1.0 + np.exp(z))
-    out: np.ndarray = d * s
+    against = -1.0 if along_speed > 0.0 else 1.0
+    out = []
+    for direction, v_max, v_width, floor in zip(
+        traits.direction, traits.v_max, traits.v_width, traits.floor, strict=True
+    ):
+        z = min((speed - v_max) / v_width, 50.0)
+        s = floor + (1.0 - floor) / (1.0 + math.exp(z))
+        out.append(wrong_way * s if moving and direction == against else s)
     return out
 
 
-def lane_transition_many(
-    offsets: np.ndarray, lateral_speed: np.ndarray, dt: np.ndarray, rate: float, p_max: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """`lane_transition` for (g,) users of one element with lane centres `offsets`
-    (g, L): (P(l -> l+1) (g, L - 1), P(l+1 -> l) (g, L - 1)), the moves to the right
-    and to the left between neighbouring lanes (the rest stays)."""
-    gaps = np.maximum(np.diff(offsets, axis=1), 0.1)
-    drift = (lateral_speed * np.maximum(dt, 0.0))[:, None]
-    base = (rate * dt)[:, None]
-    right = np.minimum(p_max, base + np.maximum(0.0, drift) / gaps)
-    left = np.minimum(p_max, base + np.maximum(0.0, -drift) / gaps)
-    return right, left
+def lane_transition_of(
+    offsets: Sequence[float],
+    lateral_speed: float,
+    dt: float,
+    rate: float,
+    p_max: float,
+    scale: Sequence[float],
+) -> list[list[float]]:
+    """`lane_transition` for one user of an element with lane centres `offsets`, in plain
+    floats, each move into lane l' scaled by `scale[l']` (the rest stays):
+    T[l, l'] = P(l -> l') scale[l'] off the diagonal, T[l, l] = 1 - sum of the others."""
+    lanes = len(offsets)
+    drift = lateral_speed * max(dt, 0.0)
+    base = rate * dt
+    t = [[0.0] * lanes for _ in range(lanes)]
+    for j in range(lanes - 1):
+        gap = max(offsets[j + 1] - offsets[j], 0.1)
+        t[j][j + 1] = min(p_max, base + max(0.0, drift) / gap) * scale[j + 1]
+        t[j + 1][j] = min(p_max, base + max(0.0, -drift) / gap) * scale[j]
+    for lane, row in enumerate(t):
+        row[lane] = 1.0 - sum(row)
+    return t

@@ -244,6 +244,12 @@ class Segment:
         f = self._f
         return np.array(f._t[f.piece_at(s)])
 
+    def tangent_at(self, s: float) -> tuple[float, float]:
+        """:meth:`tangent` as plain floats (the per-user arithmetic of a batch)."""
+        f = self._f
+        tx, ty = f._t[f.piece_at(s)]
+        return tx, ty
+
     def tangent_many(self, s: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`tangent`: (n,) stations -> (n, 2)."""
         f = self._f

@@ -53,7 +53,9 @@ __all__ = [
 MIN_VERSION = (2, 10, 0)
 """QoS 2, and '.' inside an MQTT topic level, arrived in nats-server 2.10."""
 
-_START_TIMEOUT = 30.0  # s: a node's listeners, JetStream and its MQTT streams
+_START_TIMEOUT = 60.0
+"""s for a node's listeners, JetStream and its MQTT streams: 5-10 s on a quiet machine,
+past 30 s once with two test processes and other work on two cores."""
 
 
 def find_nats_server() -> str | None:
@@ -275,7 +277,11 @@ class NatsCluster:
                 tail = node.log_file.read_text(errors="replace")[-2000:]
                 raise ConnectError(f"{node.name} exited at start:\n{tail}")
             if time.monotonic() > deadline:
-                raise ConnectError(f"{node.name}: JetStream not healthy; see {node.log_file}")
+                tail = node.log_file.read_text(errors="replace")[-1500:]
+                raise ConnectError(
+                    f"{node.name}: JetStream not healthy after {_START_TIMEOUT:g} s; the end "
+                    f"of {node.log_file}:\n{tail}"
+                )
             time.sleep(0.1)
         accounts: list[str | None] = [*self.passwords] or [None]
         for account in accounts:

@@ -819,8 +819,9 @@ class Load:
         self.shots.append(shot)
         return shot
 
-    def settle(self, timeout: float = 1.5) -> None:
-        """Wait until every request is answered or failed, at most ``timeout`` seconds."""
+    def settle(self, timeout: float = 15.0) -> None:
+        """Wait until every request is answered or failed, at most ``timeout`` seconds
+        (longer than a request's own timeout under FAST, 2 x max_age + 1 s)."""
         wait_futures([s.future for s in self.shots], timeout)
 
     def within(self, window: Window | None = None) -> list[Shot]:

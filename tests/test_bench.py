@@ -115,6 +115,24 @@ def test_bench_participants_stay_on_the_road(hamburg_map: HdMap) -> None:
     assert {f.lane for f in trace.fixes if f.kind == "bicycle"} == {3}
 
 
+def test_users_whose_phases_lie_a_microsecond_apart_each_get_one_fix_a_period(
+    hamburg_map: HdMap,
+) -> None:
+    """Phases drawn for 1,000 bench users lie as close as a microsecond: each user still
+    has one fix per period (the simulator gave two users each fix twice, and the worker
+    refused every second one as not newer: 38 error replies in a 1,000-user bench)."""
+    scenario = bench_scenario(2, rate=1.0, duration=5.0, seed=0, spread=True)
+    a, b = scenario.users
+    close = (a.model_copy(update={"phase": 0.2959102}), b.model_copy(update={"phase": 0.2959108}))
+    apart = simulate(hamburg_map, scenario, ErrorModel(), seed=0)  # phases drawn far apart
+    trace = simulate(hamburg_map, scenario.model_copy(update={"users": close}), ErrorModel(), 0)
+    for user in (a.user, b.user):
+        stamps = [f.measurement.timestamp for f in trace.fixes if f.user == user]
+        alone = [f for f in apart.fixes if f.user == user]
+        assert len(stamps) == len(alone) == 5, (user, stamps)  # 5 s at 1 Hz
+        assert stamps == sorted(set(stamps)), (user, stamps)
+
+
 @pytest.mark.parametrize(
     "bad",
     [{"participants": 0}, {"rate": 0.0}, {"duration": -1.0}, {"rotation_period": 0.0}],

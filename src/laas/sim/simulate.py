@@ -122,8 +122,13 @@ def simulate(hdmap: HdMap, scenario: Scenario, errors: ErrorModel, seed: int) ->
         for plan in shared if mine is None else sorted([*shared, *mine], key=lambda p: p.phase):
             end = scenario.duration if plan.leave is None else plan.leave
             if plan.rate is None:
+                # one of this user's own times, as `times` rounded it: two users whose
+                # phases lie within a microsecond of each other each keep their own (a
+                # tolerance on t - phase took both, and gave each user two fixes of
+                # the same millisecond)
                 local = t - plan.phase
-                if abs(local / period - round(local / period)) > 1e-6 or local < -1e-9:
+                k = round(local / period)
+                if k < 0 or round(k * period + plan.phase, 6) != t:
                     continue
             else:
                 local = own[plan.user][t]

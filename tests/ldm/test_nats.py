@@ -4,6 +4,7 @@ on free ports; the NATS tests skip when nats-server 2.10+ is missing."""
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 import urllib.request
@@ -74,6 +75,30 @@ class Inbox:
     def on(self, topic: str) -> list[Message]:
         with self.lock:
             return [m for m in self.messages if m.topic == topic]
+
+
+def test_a_cluster_whose_port_another_process_took_starts_again_on_new_ports() -> None:
+    """Ports are picked before the nodes bind them: a process that takes one in between
+    (here a listener on node 1's route port) makes the first start fail, and the cluster
+    starts again on fresh ports."""
+    need_nats()
+    cluster = NatsCluster(3, start_timeout=10.0)  # a node that cannot route waits it out
+    taken = cluster.nodes[1].route_port
+    squatter = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    squatter.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    squatter.bind(("0.0.0.0", taken))
+    squatter.listen()
+    try:
+        with cluster:
+            assert all(node.route_port != taken for node in cluster.nodes)
+            assert all(cluster.running(i) for i in range(3))
+            client = Transport(
+                BrokerSettings(url=cluster.url), client_id="after-retry", sink=lambda _e: None
+            )
+            client.start(timeout=20)
+            client.stop()
+    finally:
+        squatter.close()
 
 
 # --- cluster URLs, on any broker --------------------------------------------------------

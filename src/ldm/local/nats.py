@@ -53,6 +53,7 @@ __all__ = [
 MIN_VERSION = (2, 10, 0)
 """QoS 2, and '.' inside an MQTT topic level, arrived in nats-server 2.10."""
 
+_START_ATTEMPTS = 3  # the first start, on fresh ports each time (`NatsCluster.start`)
 _START_TIMEOUT = 60.0
 """s for a node's listeners, JetStream and its MQTT streams: 5-10 s on a quiet machine,
 past 30 s once with two test processes and other work on two cores."""
@@ -121,6 +122,7 @@ class NatsCluster:
         accounts: Sequence[str] = (),
         ack_wait: float = 1.0,
         binary: str | None = None,
+        start_timeout: float = _START_TIMEOUT,
     ) -> None:
         if size < 1:
             raise ValueError("a NATS cluster needs at least one node")
@@ -144,9 +146,12 @@ class NatsCluster:
         """Account name -> the password of its one user (named like the account)."""
         self.directory = Path(tempfile.mkdtemp(prefix="ldm-nats-"))
         self._cleanup = weakref.finalize(self, shutil.rmtree, self.directory, ignore_errors=True)
-        self.nodes = [_Node(i, self.directory) for i in range(size)]
-        for node in self.nodes:
-            node.config_file.write_text(self._config(node))
+        self._size = size
+        self.start_timeout = start_timeout
+        """Seconds each node has to report JetStream healthy (`start`, `restart`)."""
+        self._started = False
+        self.nodes: list[_Node] = []
+        self._new_nodes(self.directory)
 
     # --- RunningBroker ------------------------------------------------------------------
 
@@ -174,12 +179,28 @@ class NatsCluster:
         return lines
 
     def start(self) -> Self:
-        """Start every node that is not running; return once each serves MQTT."""
-        for node in self.nodes:
-            self._spawn(node)
-        deadline = time.monotonic() + _START_TIMEOUT
-        for node in self.nodes:
-            self._wait_ready(node, deadline)
+        """Start every node that is not running; return once each serves MQTT.
+
+        The first start picks its ports before the nodes bind them, so another process
+        may take one in between (a route port once answered HTTP, and the cluster never
+        found its leader): then every node starts again on new ports, at most
+        `_START_ATTEMPTS` times in all."""
+        first = not self._started
+        self._started = True
+        for attempt in range(1, _START_ATTEMPTS + 1):
+            try:
+                for node in self.nodes:
+                    self._spawn(node)
+                deadline = time.monotonic() + self.start_timeout
+                for node in self.nodes:
+                    self._wait_ready(node, deadline)
+                return self
+            except ConnectError:
+                if not first or attempt == _START_ATTEMPTS:
+                    raise
+                for node in self.nodes:
+                    self._end(node, signal.SIGKILL)
+                self._new_nodes(self.directory / f"attempt-{attempt + 1}")
         return self
 
     def stop(self) -> None:
@@ -230,13 +251,20 @@ class NatsCluster:
         """Start a stopped node again on its ports and store; return once it serves."""
         node = self.nodes[index]
         self._spawn(node)
-        self._wait_ready(node, time.monotonic() + _START_TIMEOUT)
+        self._wait_ready(node, time.monotonic() + self.start_timeout)
 
     def running(self, index: int) -> bool:
         process = self.nodes[index].process
         return process is not None and process.poll() is None
 
     # --- inside -------------------------------------------------------------------------
+
+    def _new_nodes(self, directory: Path) -> None:
+        """Nodes on fresh ports, with their configs, logs and stores in `directory`."""
+        directory.mkdir(parents=True, exist_ok=True)
+        self.nodes = [_Node(i, directory) for i in range(self._size)]
+        for node in self.nodes:
+            node.config_file.write_text(self._config(node))
 
     def _config(self, node: _Node) -> str:
         routes = ", ".join(f"nats-route://127.0.0.1:{other.route_port}" for other in self.nodes)
@@ -279,7 +307,7 @@ class NatsCluster:
             if time.monotonic() > deadline:
                 tail = node.log_file.read_text(errors="replace")[-1500:]
                 raise ConnectError(
-                    f"{node.name}: JetStream not healthy after {_START_TIMEOUT:g} s; the end "
+                    f"{node.name}: JetStream not healthy after {self.start_timeout:g} s; the end "
                     f"of {node.log_file}:\n{tail}"
                 )
             time.sleep(0.1)

@@ -187,7 +187,8 @@ class NatsCluster:
         `_START_ATTEMPTS` times in all."""
         first = not self._started
         self._started = True
-        for attempt in range(1, _START_ATTEMPTS + 1):
+        attempt = 1
+        while True:
             try:
                 for node in self.nodes:
                     self._spawn(node)
@@ -196,12 +197,14 @@ class NatsCluster:
                     self._wait_ready(node, deadline)
                 return self
             except ConnectError:
-                if not first or attempt == _START_ATTEMPTS:
+                if not first:
                     raise
-                for node in self.nodes:
+                for node in self.nodes:  # none left running, whether it tries again or not
                     self._end(node, signal.SIGKILL)
-                self._new_nodes(self.directory / f"attempt-{attempt + 1}")
-        return self
+                if attempt == _START_ATTEMPTS:
+                    raise
+                attempt += 1
+                self._new_nodes(self.directory / f"attempt-{attempt}")
 
     def stop(self) -> None:
         """End every node (SIGTERM, then SIGKILL after 5 s)."""

@@ -103,6 +103,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from laas.engine.jit import jit
+
 __all__ = ["CommonError", "CommonErrorField", "UGrid"]
 
 _U_STEP = 0.1  # m: cell of the 1-D grid of u = n . b, well below any lane-evidence width
@@ -194,39 +196,22 @@ class CommonError:
         self._moments()
 
     def _moments(self) -> None:
-        """The window's weights p(b), b = E[b] and P = Cov[b]."""
+        """The window's weights p(b), b = E[b] and P = Cov[b] (`_window_moments`)."""
         i0, i1, j0, j1 = self._win
-        w = np.exp(self._log[i0:i1, j0:j1])
-        self._w = w / w.sum()
-        self.b, self.P = self._stats(self._w)
-
-    def _stats(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of b under window weights w (summing to 1), plus each
-        cell's own spread res^2 / 12."""
-        i0, i1, j0, j1 = self._win
-        ae, an = self._axis[i0:i1], self._axis[j0:j1]
-        we, wn = w.sum(axis=1), w.sum(axis=0)
-        me, mn = float(we @ ae), float(wn @ an)
-        de, dn = ae - me, an - mn
-        cee = float(we @ de**2)
-        cnn = float(wn @ dn**2)
-        cen = float(de @ w @ dn)
+        # exp in numpy's call, which vectorises it (a window holds hundreds of cells)
+        self._w = np.exp(self._log[i0:i1, j0:j1])
+        stats = _window_moments(self._w, self._axis[i0:i1], self._axis[j0:j1])
+        me, mn, cee, cen, cnn = stats
         own = self._res**2 / 12.0
-        return np.array([me, mn]), np.array([[cee + own, cen], [cen, cnn + own]])
+        self.b = np.array([me, mn])
+        self.P = np.array([[cee + own, cen], [cen, cnn + own]])
 
     def _shrink(self) -> None:
         """Drop the window's edges that hold no mass; keep two cells of margin."""
         i0, i1, j0, j1 = self._win
-        sub = self._log[i0:i1, j0:j1]
-        keep = sub > -_DROP
-        rows, cols = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
+        r0, r1, c0, c1 = _held(self._log, i0, i1, j0, j1, -_DROP)
         n = self._axis.size
-        new = (
-            max(0, i0 + int(rows[0]) - 2),
-            min(n, i0 + int(rows[-1]) + 3),
-            max(0, j0 + int(cols[0]) - 2),
-            min(n, j0 + int(cols[-1]) + 3),
-        )
+        new = (max(0, i0 + r0 - 2), min(n, i0 + r1 + 3), max(0, j0 + c0 - 2), min(n, j0 + c1 + 3))
         if new != self._win:
             inside = (slice(new[0], new[1]), slice(new[2], new[3]))
             if self.cap is None:
@@ -318,9 +303,16 @@ class CommonError:
         found = cells_of.get(key)
         if found is None:
             i0, i1, j0, j1 = self._win
-            proj = self._axis[i0:i1, None] * normal[0] + self._axis[None, j0:j1] * normal[1]
-            idx = self.u.index(proj)
-            found = cells_of[key] = (idx, (int(idx.min()), int(idx.max()) + 1))
+            idx, lo, hi = _u_cells(
+                self._axis[i0:i1],
+                self._axis[j0:j1],
+                key[0],
+                key[1],
+                self.u.lo,
+                self.u.step,
+                self.u.size,
+            )
+            found = cells_of[key] = (idx, (lo, hi))
         return found
 
     def u_moments(self, normal: np.ndarray) -> np.ndarray:
@@ -329,15 +321,9 @@ class CommonError:
         u-grid then has its moments of b in O(U):  E_g[b] = sum_k g_k M1_k / sum_k g_k M0_k,
         and the same for the second moments."""
         i0, i1, j0, j1 = self._win
-        be, bn = self._axis[i0:i1, None], self._axis[None, j0:j1]
-        idx = self._cells(normal).ravel()
-        w = self._w
-        we, wn = w * be, w * bn
-        terms = (w, we, wn, we * be, we * bn, wn * bn)
-        out = np.empty((self.u.size, 6))
-        for k, t in enumerate(terms):
-            out[:, k] = np.bincount(idx, weights=t.ravel(), minlength=self.u.size)
-        return out
+        return _u_moments(
+            self._w, self._axis[i0:i1], self._axis[j0:j1], self._cells(normal), self.u.size
+        )
 
     @property
     def cell_var(self) -> float:
@@ -752,3 +738,104 @@ class CommonErrorField:
             self.areas.append(best)
             self._cells.setdefault((ci, cj), []).append(best)
         return best
+
+
+# -- the window's arithmetic, compiled (`laas.engine.jit`) ----------------------------------
+
+
+@jit
+def _window_moments(
+    w: np.ndarray, ae: np.ndarray, an: np.ndarray
+) -> tuple[float, float, float, float, float]:
+    """The window's weights p(b) = w / sum w, normalised in place (w: exp(log p) on its
+    cells, [east, north]; ae, an: their axes), and the moments of b under them without
+    the cells' own spread: (E b_e, E b_n, Var b_e, Cov(b_e, b_n), Var b_n)."""
+    ni, nj = w.shape
+    total = 0.0
+    for i in range(ni):
+        for j in range(nj):
+            total += w[i, j]
+    we = np.zeros(ni)
+    wn = np.zeros(nj)
+    for i in range(ni):
+        for j in range(nj):
+            v = w[i, j] / total
+            w[i, j] = v
+            we[i] += v
+            wn[j] += v
+    me = 0.0
+    for i in range(ni):
+        me += we[i] * ae[i]
+    mn = 0.0
+    for j in range(nj):
+        mn += wn[j] * an[j]
+    cee = 0.0
+    for i in range(ni):
+        cee += we[i] * (ae[i] - me) ** 2
+    cnn = 0.0
+    for j in range(nj):
+        cnn += wn[j] * (an[j] - mn) ** 2
+    cen = 0.0
+    for i in range(ni):
+        row = 0.0
+        for j in range(nj):
+            row += w[i, j] * (an[j] - mn)
+        cen += (ae[i] - me) * row
+    return me, mn, cee, cen, cnn
+
+
+@jit
+def _held(
+    log: np.ndarray, i0: int, i1: int, j0: int, j1: int, floor: float
+) -> tuple[int, int, int, int]:
+    """The first and last row, and first and last column, of the window [i0, i1) x
+    [j0, j1) of `log` that hold a cell above `floor` (the maximum, 0, always is),
+    counted from the window's corner. (The whole grid and its bounds, not a view: one
+    compiled version serves every window.)"""
+    ni, nj = i1 - i0, j1 - j0
+    r0, r1, c0, c1 = ni, -1, nj, -1
+    for i in range(ni):
+        for j in range(nj):
+            if log[i0 + i, j0 + j] > floor:
+                r0, r1 = min(r0, i), max(r1, i)
+                c0, c1 = min(c0, j), max(c1, j)
+    return r0, r1, c0, c1
+
+
+@jit
+def _u_cells(
+    ae: np.ndarray, an: np.ndarray, n_e: float, n_n: float, lo: float, step: float, size: int
+) -> tuple[np.ndarray, int, int]:
+    """The u-grid cell of n . b for each window cell (`UGrid.index`), and the first and
+    one past the last cell they take."""
+    idx = np.empty((ae.size, an.size), dtype=np.intp)
+    first, last = size, 0
+    for i in range(ae.size):
+        for j in range(an.size):
+            k = int((ae[i] * n_e + an[j] * n_n - lo) / step + 0.5)
+            k = min(max(k, 0), size - 1)
+            idx[i, j] = k
+            first, last = min(first, k), max(last, k)
+    return idx, first, last + 1
+
+
+@jit
+def _u_moments(
+    w: np.ndarray, ae: np.ndarray, an: np.ndarray, idx: np.ndarray, size: int
+) -> np.ndarray:
+    """`CommonError.u_moments`: per u-cell the sums of p(b) times 1, b_e, b_n, b_e^2,
+    b_e b_n, b_n^2 over the window's cells in it."""
+    out = np.zeros((size, 6))
+    for i in range(ae.size):
+        e = ae[i]
+        for j in range(an.size):
+            k = idx[i, j]
+            p = w[i, j]
+            pe, pn = p * e, p * an[j]
+            out[k, 0] += p
+            out[k, 1] += pe
+            out[k, 2] += pn
+            out[k, 3] += pe * e
+            out[k, 4] += pe * an[j]
+            out[k, 5] += pn * an[j]
+    return out

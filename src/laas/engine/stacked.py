@@ -26,10 +26,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from laas.engine.jit import jit
+
 __all__ = ["evidence", "lanes_and_conditionals", "pad"]
 
 _K = 1.0 / math.sqrt(2.0 * math.pi)
-_SECOND = np.array([3, 4, 4, 5])  # the columns of E[b_e^2], E[b_e b_n], E[b_n^2] in a 2 x 2
+# cells x lanes up to which `evidence` is computed cell by cell: below it numpy's fixed
+# cost per call (some 15 us) outweighs its vectorised exponentials (about 20 ns a cell
+# against 40), measured on the development machine (`tests/test_stacked.py` prints nothing;
+# `laas bench --worker-only` shows the effect)
+_FEW_CELLS = 1024
 
 
 def pad(blocks: Sequence[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
@@ -58,7 +64,78 @@ def evidence(
     transition (n, L, L), fit (n, L) already raised to dt / tau, residual
     r = d - u - o (n, H, L), sigma s (n,), weight w (n,). The lateral likelihood N~ is
     the multipath mixture (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 + s_mp^2), with
-    pi = `share` and s_mp = `wide`."""
+    pi = `share` and s_mp = `wide`.
+
+    Compiled cell by cell for a few cells (one user: its few lanes over its span),
+    in numpy's array calls for many; `tests/test_stacked.py` holds the two together."""
+    kernel = _evidence_cells if residual.size <= _FEW_CELLS else _evidence_arrays
+    out: tuple[np.ndarray, np.ndarray] = kernel(
+        alpha, transition, fit, residual, sigma, weight, off_lane, share, wide
+    )
+    return out
+
+
+@jit
+def _evidence_cells(
+    alpha: np.ndarray,
+    transition: np.ndarray,
+    fit: np.ndarray,
+    residual: np.ndarray,
+    sigma: np.ndarray,
+    weight: np.ndarray,
+    off_lane: float,
+    share: float,
+    wide: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`evidence` cell by cell, compiled."""
+    n, h, lanes = residual.shape
+    joint = np.empty((n, h, lanes))
+    log_c = np.empty((n, h))
+    a = np.empty(lanes)
+    for i in range(n):
+        s = sigma[i]
+        s_wide = math.sqrt(s * s + wide * wide)
+        narrow_k = (1.0 - share) * _K / s
+        wide_k = share * _K / s_wide
+        w = weight[i]
+        for k in range(h):
+            # prediction: a[l] = sum_j alpha[j] T[j, l] F[l]
+            for lane in range(lanes):
+                acc = 0.0
+                for j in range(lanes):
+                    acc += alpha[i, k, j] * transition[i, j, lane]
+                a[lane] = acc * fit[i, lane]
+            # like = eps + (1 - pi) K / s exp(-(r / s)^2 / 2) + pi K / s_w exp(-(r / s_w)^2 / 2);
+            # joint = a like^w, c = sum_l joint, alpha' = joint / c
+            c = 0.0
+            for lane in range(lanes):
+                r = residual[i, k, lane]
+                like = narrow_k * math.exp(-0.5 * (r / s) ** 2)
+                like += wide_k * math.exp(-0.5 * (r / s_wide) ** 2)
+                like += off_lane
+                j_l = a[lane] * like**w
+                joint[i, k, lane] = j_l
+                c += j_l
+            c = max(c, 1e-300)
+            for lane in range(lanes):
+                joint[i, k, lane] /= c
+            log_c[i, k] = math.log(c)
+    return joint, log_c
+
+
+def _evidence_arrays(
+    alpha: np.ndarray,
+    transition: np.ndarray,
+    fit: np.ndarray,
+    residual: np.ndarray,
+    sigma: np.ndarray,
+    weight: np.ndarray,
+    off_lane: float,
+    share: float,
+    wide: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`evidence` in numpy's array calls: cheaper for many cells (its exponentials
+    vectorised), dearer for few (a fixed cost per call)."""
     a = np.matmul(alpha, transition) * fit[:, None, :]
     s = sigma[:, None, None]
     s_wide = np.sqrt(s * s + wide * wide)
@@ -84,6 +161,7 @@ def evidence(
     return joint, np.log(c)
 
 
+@jit
 def lanes_and_conditionals(
     moments: np.ndarray, alpha: np.ndarray, cell_var: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -97,17 +175,41 @@ def lanes_and_conditionals(
 
     held is False where the lane keeps no mass of the posterior; there the caller takes
     the area's own b and P."""
-    marginal = np.matmul(moments[:, None, :, 0], alpha)[:, 0, :]
-    marginal /= marginal.sum(axis=1, keepdims=True)
-    lane = np.argmax(marginal, axis=1)
-    g = alpha[np.arange(len(lane)), :, lane]  # (n, H)
-    sums = np.matmul(g[:, None, :], moments)[:, 0, :]  # (n, 6)
-    held = sums[:, 0] > 0.0
-    sums /= np.where(held, sums[:, 0], 1.0)[:, None]
-    mean = sums[:, 1:3]
-    # E[b b'] - E[b] E[b]' (+ res^2 / 12 on the diagonal), the second moments laid out
-    # as 2 x 2 from (ee, en, en, nn)
-    cov = sums[:, _SECOND].reshape(-1, 2, 2) - mean[:, :, None] * mean[:, None, :]
-    cov[:, 0, 0] += cell_var
-    cov[:, 1, 1] += cell_var
-    return marginal, lane, mean.copy(), cov, held
+    n, h, lanes = alpha.shape
+    marginal = np.zeros((n, lanes))
+    lane = np.empty(n, dtype=np.intp)
+    mean = np.empty((n, 2))
+    cov = np.empty((n, 2, 2))
+    held = np.empty(n, dtype=np.bool_)
+    sums = np.empty(6)
+    for i in range(n):
+        for k in range(h):
+            m0 = moments[i, k, 0]
+            for j in range(lanes):
+                marginal[i, j] += m0 * alpha[i, k, j]
+        total = 0.0
+        for j in range(lanes):
+            total += marginal[i, j]
+        best = 0
+        for j in range(lanes):
+            marginal[i, j] /= total
+            if marginal[i, j] > marginal[i, best]:
+                best = j
+        lane[i] = best
+        sums[:] = 0.0
+        for k in range(h):
+            g = alpha[i, k, best]
+            for m in range(6):
+                sums[m] += g * moments[i, k, m]
+        mass = sums[0]
+        held[i] = mass > 0.0
+        if held[i]:
+            for m in range(6):
+                sums[m] /= mass
+        e, nn = sums[1], sums[2]
+        # E[b b'] - E[b] E[b]' (+ res^2 / 12 on the diagonal), from (ee, en, nn)
+        mean[i, 0], mean[i, 1] = e, nn
+        cov[i, 0, 0] = sums[3] - e * e + cell_var
+        cov[i, 0, 1] = cov[i, 1, 0] = sums[4] - e * nn
+        cov[i, 1, 1] = sums[5] - nn * nn + cell_var
+    return marginal, lane, mean, cov, held

@@ -25,13 +25,14 @@ whose velocity the fixes keep measuring well, would weigh every later fix as a
 reflection and never come back. Paper mode, and pi = 0, is the plain filter.
 
 The filter is filterpy's `KalmanFilter` written out for this model (predict with
-F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) in a
-few numpy calls on stacked (B, 4) states and (B, 4, 4) covariances: `kalman_steps` steps
-a batch of tracks at once, and a single track (`Track.update`) is a batch of one. There
-is no other copy of the step. filterpy's general predict and update cost about 150 us a
-fix, most of it bookkeeping, a batch of one here about 30 us. `tests/test_tracking.py`
-holds it to filterpy's own `KalmanFilter` and `Q_discrete_white_noise`, which stay the
-reference.
+F = [[I, dt I], [0, I]], update with H = I and Joseph's form of P, as filterpy does) on
+stacked (B, 4) states and (B, 4, 4) covariances, compiled (`_kalman`, `laas.engine.jit`):
+`kalman_steps` steps a batch of tracks at once, and a single track (`Track.update`) is a
+batch of one. There is no other copy of the step. filterpy's general predict and update
+cost about 40 us a fix, most of it bookkeeping; a batch of one here about 10 us, a track
+in a batch of 64 about 4 us (the development machine).
+`tests/test_tracking.py` holds it to filterpy's own `KalmanFilter` and
+`Q_discrete_white_noise`, which stay the reference.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from laas.config import EngineConfig
+from laas.engine.jit import jit
 
 __all__ = [
     "DOUBT_SECONDS",
@@ -68,18 +70,20 @@ seconds (in the development families 2-6 s on average, exponentially distributed
 _AGREES = 0.1  # a disagreement begins with a fix of rho > 1/2 and ends with one of rho < this
 
 
+@jit
 def multipath_weight(a: float, b: float, c: float, y0: float, y1: float, share: float) -> float:
     """rho of the module docstring for one fix: the posterior probability that it is in
-    multipath, given its position's innovation y = (y0, y1) and S = [[a, b], [b, c]].
-    In floats: numpy's call overhead on 2 x 2 arrays would double a track's step."""
+    multipath, given its position's innovation y = (y0, y1) and S = [[a, b], [b, c]]."""
     wide = MULTIPATH_SIGMA**2
-
-    def log_density(a: float, c: float) -> float:
-        det = a * c - b * b
-        return -0.5 * (c * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) / det - 0.5 * math.log(det)
-
-    narrow = math.log(1.0 - share) + log_density(a, c)
-    broad = math.log(share) + log_density(a + wide, c + wide)
+    det = a * c - b * b
+    narrow = math.log(1.0 - share) - 0.5 * (
+        (c * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) / det + math.log(det)
+    )
+    a, c = a + wide, c + wide
+    det = a * c - b * b
+    broad = math.log(share) - 0.5 * (
+        (c * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) / det + math.log(det)
+    )
     return 1.0 / (1.0 + math.exp(min(max(narrow - broad, -700.0), 700.0)))
 
 
@@ -159,29 +163,6 @@ class Track:
             kalman_steps([self], [fix])  # a batch of one
         return outcome
 
-    def _weigh(self, rho: float, t: float, p: np.ndarray, r: np.ndarray) -> None:
-        """In place on this step's predicted P and its R: the position's variance in R
-        raised by rho s_mp^2, or, the track doubted, P's by s_mp^2 (module docstring)."""
-        if self._doubt(rho, t):
-            p[0, 0] += MULTIPATH_SIGMA**2
-            p[1, 1] += MULTIPATH_SIGMA**2
-        else:
-            r[0, 0] += rho * MULTIPATH_SIGMA**2
-            r[1, 1] += rho * MULTIPATH_SIGMA**2
-
-    def _doubt(self, rho: float, t: float) -> bool:
-        """Whether a fix of weight rho at time t ends a disagreement long enough to doubt
-        the track (`DOUBT_SECONDS`); keeps the time the disagreement began."""
-        if rho < _AGREES or (self._doubted is None and rho <= 0.5):
-            self._doubted = None
-            return False
-        if self._doubted is None:
-            self._doubted = t
-        if t - self._doubted < DOUBT_SECONDS:
-            return False
-        self._doubted = None
-        return True
-
     def admit(self, fix: Fix) -> TrackUpdate:
         """`update` but for the Kalman step of an accepted fix, which is left to the
         caller (`update`, or `kalman_steps` for a batch); a restart, or with the Kalman
@@ -246,10 +227,6 @@ class Track:
         return self.position + self.velocity * (t - self.t)
 
 
-_EYE4 = np.eye(4)
-_Q_SCALE = np.array([0.25, 0.5, 1.0])  # Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
-
-
 def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
     """R of each fix, (B, 4, 4): sigma_pos^2 on the position (the receiver's own accuracy
     if it gives one); on the velocity, speed noise along the heading and across it the
@@ -278,56 +255,170 @@ def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
 def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
     """`Track.update`'s Kalman step for fix i of track i, all at once (each fix admitted
     by its track with `Track.admit`, one fix per track), on stacked (B, 4) states and
-    (B, 4, 4) covariances; a single track is a batch of one.
-
-    predict   x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white
-              acceleration of variance q gives (filterpy's Q_discrete_white_noise(dim=2,
-              block_size=2))  Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
-    weigh     in default mode, rho of each fix and `Track._weigh` (module docstring)
-    update    H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),
-              P = (I - K) P (I - K)' + K R K'  (Joseph's form, which stays symmetric and
-              positive; filterpy's update)
-    """
+    (B, 4, 4) covariances; a single track is a batch of one. The arithmetic is
+    `_kalman`, compiled: numpy's calls on 4 x 4 arrays cost more than the arithmetic."""
     if not tracks:
         return
     config = tracks[0]._config
     x = np.array([tr._x for tr in tracks])
     p = np.array([tr._P for tr in tracks])
-    steps = [f.t - tr.t for tr, f in zip(tracks, fixes, strict=True)]
-    dts = np.array(steps)
-    # F x and F P F', F = [[I, dt I], [0, I]]: the velocity's rows, then its columns,
-    # added dt times to the position's (what the products with F's ones and zeros do)
-    dt = dts[:, None]
-    x[:, :2] += dt * x[:, 2:]
-    p[:, :2, :] += dt[:, :, None] * p[:, 2:, :]
-    p[:, :, :2] += dt[:, None, :] * p[:, :, 2:]
-    # + Q: its three coefficients q dt^4 / 4, q dt^3 / 2, q dt^2
-    q4, q3, q2 = (config.sigma_accel**2 * _Q_SCALE).tolist()
-    q = []
-    for step in steps:
-        a, b, c = q4 * step**4.0, q3 * step**3.0, q2 * step**2.0
-        q.append((a, 0.0, b, 0.0, 0.0, a, 0.0, b, b, 0.0, c, 0.0, 0.0, b, 0.0, c))
-    p += np.array(q).reshape(-1, 4, 4)
-    z = np.array(
+    sigma_pos = config.sigma_pos
+    # per fix: t, dt, e, n, speed, heading, sigma_pos^2, when its disagreement began
+    rows = np.array(
         [
-            [fx.e, fx.n, fx.speed * math.sin(fx.heading), fx.speed * math.cos(fx.heading)]
-            for fx in fixes
+            (
+                f.t,
+                f.t - tr.t,
+                f.e,
+                f.n,
+                f.speed,
+                f.heading,
+                (f.accuracy if f.accuracy is not None else sigma_pos) ** 2,
+                math.nan if tr._doubted is None else tr._doubted,
+            )
+            for tr, f in zip(tracks, fixes, strict=True)
         ]
     )
-    r = measurement_noise(config, fixes)
-    if _weighs_multipath(config):
-        share = config.track_multipath
-        y = (z[:, :2] - x[:, :2]).tolist()
-        s = (p[:, :2, :2] + r[:, :2, :2]).tolist()
-        for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
-            (s00, s01), (_, s11) = s[i]
-            rho = multipath_weight(s00, s01, s11, y[i][0], y[i][1], share)
-            track._weigh(rho, fix.t, p[i], r[i])
-    k = np.linalg.solve(p + r, p).transpose(0, 2, 1)  # P S^-1 = (S^-1 P)', P, S symmetric
-    x = x + np.matmul(k, (z - x)[:, :, None])[:, :, 0]
-    i_k = _EYE4 - k
-    p = i_k @ p @ i_k.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
+    _kalman(
+        x,
+        p,
+        rows,
+        config.sigma_accel**2,
+        config.sigma_vel**2 + _MIN_VELOCITY_VAR,
+        math.radians(config.sigma_heading),
+        config.track_multipath if _weighs_multipath(config) else 0.0,
+    )
+    doubted = rows[:, 7].tolist()
     for i, (track, fix) in enumerate(zip(tracks, fixes, strict=True)):
         track._x = x[i]
         track._P = p[i]
-        track._accepted(fix, float(dts[i]))
+        track._doubted = None if math.isnan(doubted[i]) else doubted[i]
+        track._accepted(fix, float(rows[i, 1]))
+
+
+@jit
+def _kalman(
+    x: np.ndarray,
+    p: np.ndarray,
+    rows: np.ndarray,
+    q: float,
+    v2: float,
+    sigma_h: float,
+    share: float,
+) -> None:
+    """In place on x (B, 4), P (B, 4, 4) and the rows' last column (when each track's
+    disagreement began, NaN for none), for fix rows (t, dt, e, n, s, h, s_pos^2, doubted):
+
+    predict   x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white
+              acceleration of variance q gives (filterpy's Q_discrete_white_noise(dim=2,
+              block_size=2))  Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
+    measure   z = (e, n, s sin h, s cos h), R = `measurement_noise`
+    weigh     with share = pi > 0, rho (`multipath_weight`): a disagreement begins
+              with a fix of rho > 1/2 and ends with one of rho < 0.1; one that lasts
+              `DOUBT_SECONDS` doubts the track, P's position variance raised by s_mp^2
+              and the fix taken at its own sigma; otherwise R's position variance is
+              raised by rho s_mp^2
+    update    H = I:  S = P + R,  K = P S^-1,  x = x + K (z - x),
+              P = (I - K) P (I - K)' + K R K'  (Joseph's form, which stays symmetric and
+              positive; filterpy's update)
+    """
+    wide = MULTIPATH_SIGMA**2
+    z = np.empty(4)
+    r = np.zeros((4, 4))
+    s = np.empty((4, 4))
+    k = np.empty((4, 4))
+    a = np.empty((4, 4))
+    t = np.empty((4, 4))
+    for i in range(x.shape[0]):
+        dt = rows[i, 1]
+        xi, pi = x[i], p[i]
+        # predict: F x, then F P F' (rows, then columns: the velocity's added dt times
+        # to the position's), then + Q
+        xi[0] += dt * xi[2]
+        xi[1] += dt * xi[3]
+        for c in range(4):
+            pi[0, c] += dt * pi[2, c]
+            pi[1, c] += dt * pi[3, c]
+        for c in range(4):
+            pi[c, 0] += dt * pi[c, 2]
+            pi[c, 1] += dt * pi[c, 3]
+        q4, q3, q2 = 0.25 * q * dt**4.0, 0.5 * q * dt**3.0, q * dt**2.0
+        pi[0, 0] += q4
+        pi[1, 1] += q4
+        pi[0, 2] += q3
+        pi[1, 3] += q3
+        pi[2, 0] += q3
+        pi[3, 1] += q3
+        pi[2, 2] += q2
+        pi[3, 3] += q2
+        # the fix: z and R (`measurement_noise`)
+        speed, heading, p2 = rows[i, 4], rows[i, 5], rows[i, 6]
+        z[0], z[1] = rows[i, 2], rows[i, 3]
+        z[2], z[3] = speed * math.sin(heading), speed * math.cos(heading)
+        n_e, n_n = math.cos(heading), -math.sin(heading)
+        h2 = (speed * sigma_h) ** 2
+        r[:, :] = 0.0
+        r[0, 0] = r[1, 1] = p2
+        r[2, 2] = v2 + h2 * n_e * n_e
+        r[2, 3] = r[3, 2] = h2 * n_e * n_n
+        r[3, 3] = v2 + h2 * n_n * n_n
+        if share > 0.0:
+            y0, y1 = z[0] - xi[0], z[1] - xi[1]
+            s00, s01, s11 = pi[0, 0] + r[0, 0], pi[0, 1] + r[0, 1], pi[1, 1] + r[1, 1]
+            rho = multipath_weight(s00, s01, s11, y0, y1, share)
+            # `Track._doubt`: a disagreement begins with rho > 1/2, ends with rho < _AGREES
+            doubt = False
+            began = rows[i, 7]
+            if rho < _AGREES or (math.isnan(began) and rho <= 0.5):
+                began = math.nan
+            else:
+                if math.isnan(began):
+                    began = rows[i, 0]
+                if rows[i, 0] - began >= DOUBT_SECONDS:
+                    began = math.nan
+                    doubt = True
+            rows[i, 7] = began
+            if doubt:
+                pi[0, 0] += wide
+                pi[1, 1] += wide
+            else:
+                r[0, 0] += rho * wide
+                r[1, 1] += rho * wide
+        # S = P + R; K' = S^-1 P (P, S symmetric), by Gauss-Jordan elimination with
+        # partial pivoting on [S | P]
+        s[:, :] = pi + r
+        k[:, :] = pi
+        for c in range(4):
+            best = c
+            for row in range(c + 1, 4):
+                if abs(s[row, c]) > abs(s[best, c]):
+                    best = row
+            if best != c:
+                for col in range(4):
+                    s[c, col], s[best, col] = s[best, col], s[c, col]
+                    k[c, col], k[best, col] = k[best, col], k[c, col]
+            for row in range(4):
+                if row != c:
+                    f = s[row, c] / s[c, c]
+                    for col in range(4):
+                        s[row, col] -= f * s[c, col]
+                        k[row, col] -= f * k[c, col]
+        for row in range(4):
+            for col in range(4):
+                k[row, col] /= s[row, row]
+        kk = k.T.copy()  # K = (S^-1 P)'
+        # x = x + K (z - x)
+        innovation = z - xi
+        for row in range(4):
+            acc = 0.0
+            for col in range(4):
+                acc += kk[row, col] * innovation[col]
+            xi[row] += acc
+        # P = (I - K) P (I - K)' + K R K'
+        a[:, :] = -kk
+        for c in range(4):
+            a[c, c] += 1.0
+        t[:, :] = a @ pi
+        pi[:, :] = t @ a.T
+        t[:, :] = kk @ r
+        pi += t @ kk.T

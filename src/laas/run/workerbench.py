@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from laas.engine.warm import warm_up
 from laas.map.bundled import bundled_map
 from laas.map.geojson import read_geojson_file
 from laas.map.hdmap import HdMap
@@ -187,6 +188,7 @@ def bench_worker(
         raise ValueError(f"batch must be at least 1, not {batch}")
     say = progress or (lambda _line: None)
     hdmap = read_geojson_file(bundled_map(map_name))
+    warm_up(hdmap)  # compiled before the clock runs, as a worker does before its first fix
     scenario = roam_scenario(hdmap, seed, users, duration)
     if not spread:
         on_the_second = tuple(u.model_copy(update={"phase": 0.0}) for u in scenario.users)

@@ -69,6 +69,7 @@ from laas.engine.handover import (
     user_from_bytes,
     user_to_bytes,
 )
+from laas.engine.warm import warm_up
 from laas.map.hdmap import HdMap
 from laas.models import HANDOVER_MAX, CorrectedPosition, ErrorReply, GpsMeasurement, problems
 from laas.worker.regions import Region
@@ -512,6 +513,8 @@ def start_worker(
         path = provider_settings.get("identity_file")
         identity = SigningKey.load_or_create(path) if path else SigningKey.generate()
     service = LaasService(hdmap, config, worker, region=region)
+    # the engine's arithmetic compiled (or loaded from numba's cache) before the first fix
+    log.info("laas worker: the engine's arithmetic ready in %.1f s", warm_up(hdmap, config))
     provider = Provider.create(
         cluster,
         service_spec(region),

@@ -1,0 +1,83 @@
+"""Compile the engine's arithmetic before the first fix that counts (`laas.engine.jit`).
+
+The compiled functions are built on their first call: some seconds on a fresh install
+(then kept in numba's cache), some tenths of a second in each new process after. A
+worker that did this on its first real fix would answer it seconds late, so it first
+drives a short synthetic crowd through an engine of its own: three users driving one
+road element of the map for a few seconds, one fix at a time and in a batch, which takes
+every compiled function down the paths that live fixes take. The engine is then thrown
+away; nothing of it reaches the worker's own.
+
+    .venv/bin/python -m laas.engine.warm     # fill the cache (`scripts/test` does)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from laas.config import EngineConfig
+from laas.engine.engine import Engine
+from laas.map.hdmap import HdMap, Segment
+from laas.models import GpsMeasurement
+
+__all__ = ["warm_up"]
+
+_USERS = 3
+_SECONDS = 6
+_SPEED = 8.0  # m/s
+_T0 = 1_700_000_000_000  # ms: any time; the engine keeps none of it
+
+
+def warm_up(hdmap: HdMap | None = None, config: EngineConfig | None = None) -> float:
+    """Drive a short synthetic crowd through a throw-away engine on `hdmap` (None: a
+    bundled map), so every compiled function is built or loaded; the seconds it took."""
+    started = time.perf_counter()
+    if hdmap is None:
+        from laas.map.bundled import bundled_map
+        from laas.map.geojson import read_geojson_file
+
+        hdmap = read_geojson_file(bundled_map("messe-hamburg"))
+    segment = max(hdmap.segments.values(), key=lambda e: (len(e.lanes) > 1, e.length))
+    fixes = _fixes(hdmap, segment)
+    if fixes:
+        one = Engine(hdmap, config)
+        for fix in fixes[:_SECONDS]:  # one user, one fix at a time
+            one.process(*fix)
+        many = Engine(hdmap, config)
+        for k in range(0, len(fixes), _USERS):  # every user's fix of a second together
+            many.process_many(fixes[k : k + _USERS])
+    return time.perf_counter() - started
+
+
+def _fixes(hdmap: HdMap, segment: Segment) -> list[tuple[str, GpsMeasurement]]:
+    """Each second, a fix of each user driving `segment` on a lane of its own, in
+    order of time; empty if the element is too short to drive for a second."""
+    if segment.length < _SPEED:
+        return []
+    projection = hdmap.projection
+    out = []
+    for second in range(_SECONDS):
+        s = (second * _SPEED) % segment.length
+        t_e, t_n = segment.tangent(s).tolist()
+        lon, lat = projection.to_wgs84(*segment.point(s))
+        bearing = math.degrees(math.atan2(t_e, t_n)) + projection.convergence(lon, lat)
+        heading = min(bearing % 360.0, 359.999)  # x % 360 of a tiny negative x is 360.0
+        offsets = segment.lane_offsets(s).tolist()
+        for user in range(_USERS):
+            x, y = segment.point(s, offsets[user % len(offsets)])
+            lon, lat = projection.to_wgs84(x, y)
+            measurement = GpsMeasurement(
+                timestamp=_T0 + 1000 * second,
+                latitude=lat,
+                longitude=lon,
+                heading=heading,
+                speed=_SPEED,
+                accuracy=2.0,
+            )
+            out.append((f"warm-{user}", measurement))
+    return out
+
+
+if __name__ == "__main__":
+    print(f"laas: the engine's compiled arithmetic ready in {warm_up():.1f} s")

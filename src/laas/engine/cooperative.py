@@ -406,17 +406,14 @@ class CooperativeLaneFilter(LaneFilter):
         h = max(u.hi - u.lo for u in users)
         lanes = max(len(u.offsets) for u in users)
         lo = np.array([u.lo for u in users])
-        # each user's u-cells lo..lo + H (a padded cell reads the grid's last value)
-        cell = np.minimum(lo[:, None] + np.arange(h), area.u.size - 1)
-        d = np.array([u.d for u in users])
-        residual = (d[:, None] - area.u.values[cell])[:, :, None] - pad(
-            [u.offsets for u in users], (lanes,)
-        )[:, None, :]
         alpha, log_c = evidence(
             pad([u.alpha[u.lo : u.hi] for u in users], (h, lanes)),
             pad([u.transition for u in users], (lanes, lanes)),
             pad([u.fit for u in users], (lanes,)),
-            residual,
+            np.array([u.d for u in users]),
+            area.u.values,
+            lo,
+            pad([u.offsets for u in users], (lanes,)),
             np.array([u.sigma for u in users]),
             np.array([u.weight for u in users]),
             _OFF_LANE,
@@ -430,15 +427,17 @@ class CooperativeLaneFilter(LaneFilter):
         # user's whole part of the one-liar mixture renewed instead (common_error).
         area.update_stacked(normals, log_c, lo, [u.user for u in users])
 
-        # The lane: the marginal over u; the common error given that lane.
-        moments: dict[tuple[float, float], np.ndarray] = {}
-        stacked = np.empty((len(users), h, 6))
+        # The lane: the marginal over u; the common error given that lane, from the
+        # posterior's u-moments along each user's normal (once per distinct normal).
+        groups: dict[tuple[float, float], tuple[int, np.ndarray]] = {}
+        group = np.empty(len(users), dtype=np.intp)
         for k, u in enumerate(users):
             key = (float(u.normal[0]), float(u.normal[1]))
-            if key not in moments:
-                moments[key] = area.u_moments(u.normal)
-            stacked[k] = moments[key][cell[k]]
-        marginal, lane, b, cov, held = lanes_and_conditionals(stacked, alpha, area.cell_var)
+            group[k] = groups.setdefault(key, (len(groups), u.normal))[0]
+        moments = np.array([area.u_moments(normal) for _, normal in groups.values()])
+        marginal, lane, b, cov, held = lanes_and_conditionals(
+            moments, group, lo, alpha, area.cell_var
+        )
         if not held.all():
             b[~held], cov[~held] = area.b, area.P
         by_segment: dict[str, list[int]] = {}

@@ -53,7 +53,10 @@ def evidence(
     alpha: np.ndarray,
     transition: np.ndarray,
     fit: np.ndarray,
-    residual: np.ndarray,
+    d: np.ndarray,
+    u: np.ndarray,
+    lo: np.ndarray,
+    offsets: np.ndarray,
     sigma: np.ndarray,
     weight: np.ndarray,
     off_lane: float,
@@ -61,16 +64,18 @@ def evidence(
     wide: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(alpha', log c) of the module docstring for stacked users: alpha (n, H, L),
-    transition (n, L, L), fit (n, L) already raised to dt / tau, residual
-    r = d - u - o (n, H, L), sigma s (n,), weight w (n,). The lateral likelihood N~ is
-    the multipath mixture (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 + s_mp^2), with
-    pi = `share` and s_mp = `wide`.
+    transition (n, L, L), fit (n, L) already raised to dt / tau, each fix's offset d
+    (n,), the u-grid's values u (U,) of which user i's cells are lo_i, lo_i + 1, ...
+    (a cell past the grid reads its last value), the lane centres o (n, L), sigma s (n,),
+    weight w (n,); the residual is r[i, h, l] = d_i - u[lo_i + h] - o[i, l]. The lateral
+    likelihood N~ is the multipath mixture (1 - pi) N(r; 0, s^2) + pi N(r; 0, s^2 +
+    s_mp^2), with pi = `share` and s_mp = `wide`.
 
     Compiled cell by cell for a few cells (one user: its few lanes over its span),
     in numpy's array calls for many; `tests/test_stacked.py` holds the two together."""
-    kernel = _evidence_cells if residual.size <= _FEW_CELLS else _evidence_arrays
+    kernel = _evidence_cells if alpha.size <= _FEW_CELLS else _evidence_arrays
     out: tuple[np.ndarray, np.ndarray] = kernel(
-        alpha, transition, fit, residual, sigma, weight, off_lane, share, wide
+        alpha, transition, fit, d, u, lo, offsets, sigma, weight, off_lane, share, wide
     )
     return out
 
@@ -80,7 +85,10 @@ def _evidence_cells(
     alpha: np.ndarray,
     transition: np.ndarray,
     fit: np.ndarray,
-    residual: np.ndarray,
+    d: np.ndarray,
+    u: np.ndarray,
+    lo: np.ndarray,
+    offsets: np.ndarray,
     sigma: np.ndarray,
     weight: np.ndarray,
     off_lane: float,
@@ -88,7 +96,8 @@ def _evidence_cells(
     wide: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`evidence` cell by cell, compiled."""
-    n, h, lanes = residual.shape
+    n, h, lanes = alpha.shape
+    last = u.size - 1
     joint = np.empty((n, h, lanes))
     log_c = np.empty((n, h))
     a = np.empty(lanes)
@@ -99,6 +108,7 @@ def _evidence_cells(
         wide_k = share * _K / s_wide
         w = weight[i]
         for k in range(h):
+            d_u = d[i] - u[min(lo[i] + k, last)]
             # prediction: a[l] = sum_j alpha[j] T[j, l] F[l]
             for lane in range(lanes):
                 acc = 0.0
@@ -109,7 +119,7 @@ def _evidence_cells(
             # joint = a like^w, c = sum_l joint, alpha' = joint / c
             c = 0.0
             for lane in range(lanes):
-                r = residual[i, k, lane]
+                r = d_u - offsets[i, lane]
                 like = narrow_k * math.exp(-0.5 * (r / s) ** 2)
                 like += wide_k * math.exp(-0.5 * (r / s_wide) ** 2)
                 like += off_lane
@@ -127,7 +137,10 @@ def _evidence_arrays(
     alpha: np.ndarray,
     transition: np.ndarray,
     fit: np.ndarray,
-    residual: np.ndarray,
+    d: np.ndarray,
+    u: np.ndarray,
+    lo: np.ndarray,
+    offsets: np.ndarray,
     sigma: np.ndarray,
     weight: np.ndarray,
     off_lane: float,
@@ -136,6 +149,9 @@ def _evidence_arrays(
 ) -> tuple[np.ndarray, np.ndarray]:
     """`evidence` in numpy's array calls: cheaper for many cells (its exponentials
     vectorised), dearer for few (a fixed cost per call)."""
+    # each user's u-cells lo..lo + H (a cell past the grid reads its last value)
+    cell = np.minimum(lo[:, None] + np.arange(alpha.shape[1]), u.size - 1)
+    residual = (d[:, None] - u[cell])[:, :, None] - offsets[:, None, :]
     a = np.matmul(alpha, transition) * fit[:, None, :]
     s = sigma[:, None, None]
     s_wide = np.sqrt(s * s + wide * wide)
@@ -163,11 +179,13 @@ def _evidence_arrays(
 
 @jit
 def lanes_and_conditionals(
-    moments: np.ndarray, alpha: np.ndarray, cell_var: float
+    moments: np.ndarray, group: np.ndarray, lo: np.ndarray, alpha: np.ndarray, cell_var: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(P(l) (n, L), l* (n,), E[b | l*] (n, 2), its covariance (n, 2, 2), held (n,)) from
-    each user's u-moments of the posterior on its span (`CommonError.u_moments`,
-    stacked (n, H, 6)) and its lane table alpha (n, H, L):
+    the posterior's u-moments along each distinct normal (`CommonError.u_moments`,
+    stacked (G, U, 6)), user i's normal's row group_i and its span's first cell lo_i (a
+    cell past the grid reads its last value, M[h] below being M[lo_i + h]), and each
+    user's lane table alpha (n, H, L):
 
         P(l)      = sum_h M0[h] alpha[h, l]                          (normalised)
         E[b | l*] = sum_h g[h] M1[h] / sum_h g[h] M0[h],   g = alpha[:, l*]
@@ -176,6 +194,7 @@ def lanes_and_conditionals(
     held is False where the lane keeps no mass of the posterior; there the caller takes
     the area's own b and P."""
     n, h, lanes = alpha.shape
+    last = moments.shape[1] - 1
     marginal = np.zeros((n, lanes))
     lane = np.empty(n, dtype=np.intp)
     mean = np.empty((n, 2))
@@ -183,8 +202,9 @@ def lanes_and_conditionals(
     held = np.empty(n, dtype=np.bool_)
     sums = np.empty(6)
     for i in range(n):
+        m = moments[group[i]]
         for k in range(h):
-            m0 = moments[i, k, 0]
+            m0 = m[min(lo[i] + k, last), 0]
             for j in range(lanes):
                 marginal[i, j] += m0 * alpha[i, k, j]
         total = 0.0
@@ -199,13 +219,14 @@ def lanes_and_conditionals(
         sums[:] = 0.0
         for k in range(h):
             g = alpha[i, k, best]
-            for m in range(6):
-                sums[m] += g * moments[i, k, m]
+            row = min(lo[i] + k, last)
+            for c in range(6):
+                sums[c] += g * m[row, c]
         mass = sums[0]
         held[i] = mass > 0.0
         if held[i]:
-            for m in range(6):
-                sums[m] /= mass
+            for c in range(6):
+                sums[c] /= mass
         e, nn = sums[1], sums[2]
         # E[b b'] - E[b] E[b]' (+ res^2 / 12 on the diagonal), from (ee, en, nn)
         mean[i, 0], mean[i, 1] = e, nn

@@ -201,6 +201,7 @@ def bench_worker(
     sessions: dict[str, tuple[str, str]] = {}  # user -> (pseudonym, ephemeral public key)
     ciphers = {}
     messages: list[Entry] = []  # as the provider queues them: each topic parsed on arrival
+    name = service_spec().name
     for fix in trace.fixes:
         if fix.user not in sessions:
             pair = KeyPair()
@@ -211,7 +212,7 @@ def bench_worker(
         c, t = secrets.token_hex(8), time.time()
         sealed = ciphers[fix.user].seal(m.model_dump_json().encode(), aad(c, t))
         env = Envelope(c=c, t=t, k=public, d=sealed)
-        topic = topics.parse(topics.provider_input(service_spec().name, pseudonym))
+        topic = topics.parse(topics.provider_input(name, pseudonym))
         messages.append(Entry(topic, pseudonym, env.encode(), 1, "bench"))
 
     rng = np.random.default_rng(seed)

@@ -28,6 +28,7 @@ _VARIABLE = re.compile(r"\b(?:LAAS|LDM)_[A-Z0-9_]+\b")
 
 OTHER_VARIABLES = {
     "LAAS_MAPS": "the folder of the bundled maps (`laas.load_map`, the default `--map`)",
+    "LAAS_NO_JIT": "`1`: the engine's arithmetic runs uncompiled (slowly; for a debugger)",
     "LDM_MOSQUITTO": "the mosquitto binary the local deployments and tests start",
     "LDM_NATS_SERVER": "the nats-server binary (`ldm nats-cluster`, tests)",
     "LDM_REQUIRE_MOSQUITTO": "`1`: a test that needs Mosquitto fails instead of skipping",

@@ -115,3 +115,13 @@ def test_the_stacked_kernels() -> None:
         stacked.lanes_and_conditionals, moments, np.array([1, 0]), np.array([10, 70]), alpha, 0.01
     )
     _close(compiled[0], plain[0])
+
+
+def test_the_warm_up_builds_every_compiled_function() -> None:
+    """`warm_up` leaves nothing to compile on a worker's first fix."""
+    from laas.engine.jit import COMPILED
+    from laas.engine.warm import warm_up
+
+    warm_up()
+    assert COMPILED
+    assert [f.__name__ for f in COMPILED if not f.signatures] == []

@@ -77,6 +77,7 @@ import numpy as np
 from laas.config import EngineConfig
 from laas.engine.common_error import CommonError, CommonErrorField
 from laas.engine.handover import AreaState, HandoverError, LaneState
+from laas.engine.jit import jit
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import MULTIPATH_SIGMA, Track
@@ -561,22 +562,39 @@ def _reproject(
     _, idx_new = area.weights_and_cells(n_new)
     # only the u'-cells [lo, hi) that n_new . b takes over the window get any mass
     lo, hi = area.taken(n_new)
-    flat_new, flat_w = idx_new.ravel() - lo, w.ravel()
-    rows = alpha[idx_old.ravel()] * flat_w[:, None]  # (cells, L)
-    num = np.stack(
-        [
-            np.bincount(flat_new, weights=rows[:, k], minlength=hi - lo)
-            for k in range(alpha.shape[1])
-        ],
-        axis=1,
-    )
-    den = np.bincount(flat_new, weights=flat_w, minlength=hi - lo)
+    num, den = _carry(alpha, w, idx_old, idx_new, lo, hi)
     marginal = num.sum(axis=0)
     marginal = marginal / marginal.sum()
     out = np.tile(marginal, (area.u.size, 1))
     held = den > 1e-12
     out[lo:hi][held] = num[held] / den[held, None]
     return out
+
+
+@jit
+def _carry(
+    alpha: np.ndarray,
+    w: np.ndarray,
+    idx_old: np.ndarray,
+    idx_new: np.ndarray,
+    lo: int,
+    hi: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_reproject`'s sums over the window's cells b, by the u'-cell k = n_new . b
+    (from `lo`): num[k, l] = sum p(b) alpha(n_old . b, l), den[k] = sum p(b)."""
+    lanes = alpha.shape[1]
+    num = np.zeros((hi - lo, lanes))
+    den = np.zeros(hi - lo)
+    ni, nj = w.shape
+    for i in range(ni):
+        for j in range(nj):
+            p = w[i, j]
+            k = idx_new[i, j] - lo
+            row = idx_old[i, j]
+            den[k] += p
+            for lane in range(lanes):
+                num[k, lane] += p * alpha[row, lane]
+    return num, den
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -13,15 +13,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import TypeVar, cast
+from typing import Any, TypeVar, cast
 
 import numba
 
-__all__ = ["jit"]
+__all__ = ["COMPILED", "jit"]
 
 F = TypeVar("F", bound=Callable[..., object])
 
 _DISABLED = os.environ.get("LAAS_NO_JIT", "") not in ("", "0")
+
+COMPILED: list[Any] = []
+"""Every function `jit` compiled (numba's dispatchers; `laas.engine.warm` builds them all)."""
 
 
 def jit(fn: F) -> F:
@@ -29,4 +32,6 @@ def jit(fn: F) -> F:
     (inf or NaN, no exception); `fn` itself with LAAS_NO_JIT=1."""
     if _DISABLED:
         return fn
-    return cast(F, numba.njit(cache=True, error_model="numpy")(fn))
+    compiled = numba.njit(cache=True, error_model="numpy")(fn)
+    COMPILED.append(compiled)
+    return cast(F, compiled)

@@ -286,10 +286,10 @@ class Segment:
     def lane_offsets_many(self, s: npt.ArrayLike) -> FloatArray:
         """Vectorised :meth:`lane_offsets`: (n,) stations -> (n, L), the same values."""
         st = np.asarray(s, dtype=np.float64).reshape(-1)
+        if len(st) <= _FEW_OFFSETS:  # each station checked by `lane_offsets`
+            return np.array([self.lane_offsets(a) for a in st.tolist()]).reshape(len(st), -1)
         if not np.isfinite(st).all():
             raise ValueError("stations must be finite")
-        if len(st) <= _FEW_OFFSETS:
-            return np.array([self.lane_offsets(a) for a in st.tolist()]).reshape(len(st), -1)
         table = self._table
         length = self.length
         # pos = clamp(s, 0, length) / length * (rows - 1);  d = D_i + f (D_{i+1} - D_i)

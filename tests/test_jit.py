@@ -125,3 +125,30 @@ def test_the_warm_up_builds_every_compiled_function() -> None:
     warm_up()
     assert COMPILED
     assert [f.__name__ for f in COMPILED if not f.signatures] == []
+
+
+def test_the_prediction() -> None:
+    from laas.engine.transition import _prediction
+
+    rng = np.random.default_rng(4)
+    n, lanes = 4, 3
+    compiled, plain = _both(
+        _prediction,
+        np.array([1.0, -1.0, 0.0]),
+        np.array([math.inf, 5.0, 12.0]),
+        np.array([1.0, 0.8, 1.5]),
+        np.array([1.0, 0.05, 0.02]),
+        np.array([8.0, -8.0, 0.5, 3.0]),  # along: forward, backward, standing, forward
+        rng.uniform(0.0, 15.0, n),
+        rng.normal(0.0, 0.5, n),
+        rng.uniform(0.1, 2.0, n),
+        rng.uniform(0.1, 1.0, n),
+        np.sort(rng.uniform(-5.0, 5.0, (n, lanes)), axis=1),
+        0.01,
+        0.45,
+        0.05,
+    )
+    _close(compiled[0], plain[0])
+    fit, transition = compiled[0]
+    np.testing.assert_allclose(transition.sum(axis=2), 1.0)  # each row a distribution
+    assert fit[1, 0] < fit[0, 0]  # a forward lane fits a user moving backward less

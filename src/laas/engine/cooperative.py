@@ -81,7 +81,7 @@ from laas.engine.jit import jit
 from laas.engine.lanefilter import LaneFilter, Placement
 from laas.engine.stacked import evidence, lanes_and_conditionals, pad
 from laas.engine.tracking import MULTIPATH_SIGMA, Track
-from laas.engine.transition import LaneTraits, lane_transition_of, motion_fit_of
+from laas.engine.transition import LaneTraits, prediction_of
 from laas.map.hdmap import Segment
 
 __all__ = ["CooperativeLaneFilter"]
@@ -349,27 +349,21 @@ class CooperativeLaneFilter(LaneFilter):
         if traits is None:
             traits = self._traits[segment.id] = LaneTraits(segment.lanes)
         offsets = segment.lane_offsets_many(np.array(stations))
-        fits, transitions = [], []
-        for i, at in enumerate(offsets.tolist()):
-            # How well each lane fits the user's motion: F[l] = D[l] S[l], its direction
-            # and its type's speeds.
-            fit = motion_fit_of(traits, alongs[i], speeds[i])
-            # ... and never into a lane that does not fit the motion (its share stays in
-            # the lane): T[l, l'] = P(l -> l') F[l'] / max F off the diagonal, the rest
-            # stays.
-            top = max(fit)
-            fits.append(fit)
-            transitions.append(
-                lane_transition_of(
-                    at,
-                    laterals[i],
-                    dts[i],
-                    c.lane_change_rate,
-                    c.max_lane_change,
-                    [f / top for f in fit],
-                )
-            )
-        fit_all, transition_all = np.array(fits), np.array(transitions)
+        # How well each lane fits the user's motion, F[l] = D[l] S[l] (its direction and
+        # its type's speeds), and the lane changes, never into a lane that does not fit
+        # the motion (its share stays in the lane): T[l, l'] = P(l -> l') F[l'] / max F
+        # off the diagonal, the rest stays.
+        fit_all, transition_all = prediction_of(
+            traits,
+            np.array(alongs),
+            np.array(speeds),
+            np.array(laterals),
+            np.array(dts),
+            np.array(memories),
+            offsets,
+            c.lane_change_rate,
+            c.max_lane_change,
+        )
         out = []
         for i, (user, track, _, _) in enumerate(work):
             area, normal = areas[i], normals[i]
@@ -393,7 +387,7 @@ class CooperativeLaneFilter(LaneFilter):
                     ds[i],
                     offsets[i],
                     transition_all[i],
-                    fit_all[i] ** memories[i],
+                    fit_all[i],
                     sigmas[i],
                     weights[i],
                 )

@@ -34,6 +34,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from laas.engine.jit import jit
 from laas.map.hdmap import Lane
 
 __all__ = [
@@ -41,9 +42,8 @@ __all__ = [
     "LaneTraits",
     "direction_likelihood",
     "lane_transition",
-    "lane_transition_of",
     "motion_fit",
-    "motion_fit_of",
+    "prediction_of",
     "speed_likelihood",
 ]
 
@@ -131,56 +131,104 @@ _DIRECTION_CODE = {"forward": 1.0, "backward": -1.0}
 
 
 class LaneTraits:
-    """The lanes of one road element as plain floats, for `motion_fit_of`: each lane's
+    """The lanes of one road element as arrays, for `prediction_of`: each lane's
     direction (+1 forward, -1 backward, 0 both) and its type's speed limits (v_max,
     v_width, floor; a type without limits takes v_max = inf, so S = 1)."""
 
     __slots__ = ("direction", "floor", "v_max", "v_width")
 
     def __init__(self, lanes: Sequence[Lane]) -> None:
-        self.direction = [_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes]
+        self.direction = np.array([_DIRECTION_CODE.get(lane.direction, 0.0) for lane in lanes])
         limits = [SPEED_LIMITS.get(lane.type, (math.inf, 1.0, 1.0)) for lane in lanes]
-        self.v_max, self.v_width, self.floor = (list(col) for col in zip(*limits, strict=True))
+        self.v_max, self.v_width, self.floor = (np.array(col) for col in zip(*limits, strict=True))
 
 
-def motion_fit_of(
-    traits: LaneTraits, along_speed: float, speed: float, wrong_way: float = 0.05
-) -> list[float]:
-    """`motion_fit` for one user of an element, in plain floats: (L,) F = D S as there.
-    (A batch's users of one element are few; numpy's calls on arrays of a few lanes cost
-    more than the arithmetic.)"""
-    moving = abs(along_speed) >= _MOVING
-    # against: the lane's direction opposes the motion along the element
-    against = -1.0 if along_speed > 0.0 else 1.0
-    out = []
-    for direction, v_max, v_width, floor in zip(
-        traits.direction, traits.v_max, traits.v_width, traits.floor, strict=True
-    ):
-        z = min((speed - v_max) / v_width, 50.0)
-        s = floor + (1.0 - floor) / (1.0 + math.exp(z))
-        out.append(wrong_way * s if moving and direction == against else s)
+def prediction_of(
+    traits: LaneTraits,
+    along: np.ndarray,
+    speed: np.ndarray,
+    lateral: np.ndarray,
+    dt: np.ndarray,
+    memory: np.ndarray,
+    offsets: np.ndarray,
+    rate: float,
+    p_max: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The prediction's motion fit and transition for n users of one element, from
+    each one's velocity along the element, speed, lateral speed beyond its noise, time
+    step and the share of tau = motion_memory it is (dt / tau, at most 1), and the lane
+    centres o (n, L) at its station:
+
+        F[l]      = D[l] S[l]   (`motion_fit`: `wrong_way` against the lane's direction
+                                 when moving, the type's speeds)
+        T[l, l']  = P(l -> l') F[l'] / max F  off the diagonal (`lane_transition`: never
+                                 into a lane that does not fit), T[l, l] the rest
+
+    as (F^(dt / tau) (n, L), T (n, L, L))."""
+    out: tuple[np.ndarray, np.ndarray] = _prediction(
+        traits.direction,
+        traits.v_max,
+        traits.v_width,
+        traits.floor,
+        along,
+        speed,
+        lateral,
+        dt,
+        memory,
+        offsets,
+        rate,
+        p_max,
+        0.05,
+    )
     return out
 
 
-def lane_transition_of(
-    offsets: Sequence[float],
-    lateral_speed: float,
-    dt: float,
+@jit
+def _prediction(
+    direction: np.ndarray,
+    v_max: np.ndarray,
+    v_width: np.ndarray,
+    floor: np.ndarray,
+    along: np.ndarray,
+    speed: np.ndarray,
+    lateral: np.ndarray,
+    dt: np.ndarray,
+    memory: np.ndarray,
+    offsets: np.ndarray,
     rate: float,
     p_max: float,
-    scale: Sequence[float],
-) -> list[list[float]]:
-    """`lane_transition` for one user of an element with lane centres `offsets`, in plain
-    floats, each move into lane l' scaled by `scale[l']` (the rest stays):
-    T[l, l'] = P(l -> l') scale[l'] off the diagonal, T[l, l] = 1 - sum of the others."""
-    lanes = len(offsets)
-    drift = lateral_speed * max(dt, 0.0)
-    base = rate * dt
-    t = [[0.0] * lanes for _ in range(lanes)]
-    for j in range(lanes - 1):
-        gap = max(offsets[j + 1] - offsets[j], 0.1)
-        t[j][j + 1] = min(p_max, base + max(0.0, drift) / gap) * scale[j + 1]
-        t[j + 1][j] = min(p_max, base + max(0.0, -drift) / gap) * scale[j]
-    for lane, row in enumerate(t):
-        row[lane] = 1.0 - sum(row)
-    return t
+    wrong_way: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`prediction_of`, compiled."""
+    n, lanes = offsets.shape
+    fit = np.empty((n, lanes))
+    transition = np.zeros((n, lanes, lanes))
+    scale = np.empty(lanes)
+    for i in range(n):
+        moving = abs(along[i]) >= _MOVING
+        # against: the lane's direction opposes the motion along the element
+        against = -1.0 if along[i] > 0.0 else 1.0
+        top = -math.inf
+        for lane in range(lanes):
+            z = min((speed[i] - v_max[lane]) / v_width[lane], 50.0)
+            f = floor[lane] + (1.0 - floor[lane]) / (1.0 + math.exp(z))
+            if moving and direction[lane] == against:
+                f = wrong_way * f
+            scale[lane] = f
+            top = max(top, f)
+        for lane in range(lanes):
+            fit[i, lane] = scale[lane] ** memory[i]
+            scale[lane] = scale[lane] / top
+        drift = lateral[i] * max(dt[i], 0.0)
+        base = rate * dt[i]
+        t = transition[i]
+        for j in range(lanes - 1):
+            gap = max(offsets[i, j + 1] - offsets[i, j], 0.1)
+            t[j, j + 1] = min(p_max, base + max(0.0, drift) / gap) * scale[j + 1]
+            t[j + 1, j] = min(p_max, base + max(0.0, -drift) / gap) * scale[j]
+        for lane in range(lanes):
+            rest = 0.0
+            for j in range(lanes):
+                rest += t[lane, j]
+            t[lane, lane] = 1.0 - rest
+    return fit, transition

@@ -88,6 +88,12 @@ def test_the_window_arithmetic(area: common_error.CommonError) -> None:
     cells = compiled[0][0]
     compiled, plain = _both(common_error._u_moments, area._w, ae, an, cells, u.size)
     _close(compiled[0], plain[0])
+    prior = area._log.copy() * 0.5
+    for whole in (False, True):  # the window shifted to its maximum, or (not whole) left
+        compiled, plain = _both(
+            common_error._fade_window, area._log, prior, i0, i1, j0, j1, 0.97, 40.0, whole
+        )
+        _close(compiled, plain)
 
 
 def test_the_stacked_kernels() -> None:

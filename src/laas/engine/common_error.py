@@ -267,14 +267,9 @@ class CommonError:
         if self._own is not None:
             self._own *= lam  # what is shared has faded as it has here
         i0, i1, j0, j1 = self._win
-        sub = self._log[i0:i1, j0:j1]
-        sub *= lam
-        sub += (1.0 - lam) * self._prior_log[i0:i1, j0:j1]
-        top = float(sub.max())
         n = self._axis.size
-        if self._win == (0, n, 0, n) or top + 2.0 * _DROP * lam >= _DROP:
-            sub -= top
-        else:
+        whole = self._win == (0, n, 0, n)
+        if not _fade_window(self._log, self._prior_log, i0, i1, j0, j1, lam, _DROP, whole):
             outside = np.ones_like(self._log, dtype=bool)
             outside[i0:i1, j0:j1] = False
             self._log[outside] = -2.0 * _DROP * lam + (1.0 - lam) * self._prior_log[outside]
@@ -782,6 +777,36 @@ def _window_moments(
             row += w[i, j] * (an[j] - mn)
         cen += (ae[i] - me) * row
     return me, mn, cee, cen, cnn
+
+
+@jit
+def _fade_window(
+    log: np.ndarray,
+    prior: np.ndarray,
+    i0: int,
+    i1: int,
+    j0: int,
+    j1: int,
+    lam: float,
+    drop: float,
+    whole: bool,
+) -> bool:
+    """`CommonError._fade` on the window [i0, i1) x [j0, j1) of log p, in place:
+    log p <- lam log p + (1 - lam) log p0, then less its new maximum M if the window is
+    the whole grid or no floor cell comes back (M + 2 drop lam >= drop); whether it was
+    (if not, the caller fades the floor outside the window)."""
+    top = -math.inf
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            v = log[i, j] * lam + (1.0 - lam) * prior[i, j]
+            log[i, j] = v
+            top = max(top, v)
+    if not (whole or top + 2.0 * drop * lam >= drop):
+        return False
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            log[i, j] -= top
+    return True
 
 
 @jit

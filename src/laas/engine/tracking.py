@@ -418,7 +418,21 @@ def _kalman(
         a[:, :] = -kk
         for c in range(4):
             a[c, c] += 1.0
-        t[:, :] = a @ pi
-        pi[:, :] = t @ a.T
-        t[:, :] = kk @ r
-        pi += t @ kk.T
+        # (4 x 4 products written out: numba's `@` calls BLAS, whose call costs more
+        # than 64 multiplications)
+        _product(a, pi, t, False)  # t = (I - K) P
+        _product(t, a, s, True)  # s = t (I - K)'
+        _product(kk, r, t, False)  # t = K R
+        _product(t, kk, pi, True)  # P = t K'
+        pi += s
+
+
+@jit
+def _product(a: np.ndarray, b: np.ndarray, out: np.ndarray, transposed: bool) -> None:
+    """out = a b, or a b' with `transposed`, for 4 x 4 arrays (out not a or b)."""
+    for i in range(4):
+        for j in range(4):
+            acc = 0.0
+            for k in range(4):
+                acc += a[i, k] * (b[j, k] if transposed else b[k, j])
+            out[i, j] = acc

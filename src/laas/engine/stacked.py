@@ -169,8 +169,11 @@ def _evidence_arrays(
     broad *= share * _K / s_wide
     like += broad
     like += off_lane
-    # joint = a like^w, c = sum_l joint, alpha' = joint / c
-    joint = np.power(like, weight[:, None, None], out=like)
+    # joint = a like^w, c = sum_l joint, alpha' = joint / c; like^w as exp(w log like)
+    # (like >= eps > 0): numpy vectorises exp and log, not power
+    joint = np.log(like, out=like)
+    joint *= weight[:, None, None]
+    np.exp(joint, out=joint)
     joint *= a
     c = np.maximum(joint.sum(axis=2), 1e-300)
     joint /= c[:, :, None]

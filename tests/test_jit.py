@@ -158,3 +158,18 @@ def test_the_prediction() -> None:
     fit, transition = compiled[0]
     np.testing.assert_allclose(transition.sum(axis=2), 1.0)  # each row a distribution
     assert fit[1, 0] < fit[0, 0]  # a forward lane fits a user moving backward less
+
+
+def test_the_carry_of_a_lane_table(area: common_error.CommonError) -> None:
+    from laas.engine.cooperative import _carry
+
+    old, new = np.array([0.6, 0.8]), np.array([0.8, 0.6])
+    w, idx_old = area.weights_and_cells(old)
+    _, idx_new = area.weights_and_cells(new)
+    lo, hi = area.taken(new)
+    alpha = np.random.default_rng(5).random((area.u.size, 3))
+    compiled, plain = _both(_carry, alpha, w, idx_old, idx_new, lo, hi)
+    _close(compiled[0], plain[0])
+    num, den = compiled[0]
+    np.testing.assert_allclose(den.sum(), 1.0)  # every window cell's weight, once
+    np.testing.assert_allclose(num.sum(), (alpha[idx_old] * w[..., None]).sum())

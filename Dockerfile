@@ -23,10 +23,16 @@ COPY maps ./maps
 # The containers' health checks and the compose simulator (one account per road user).
 COPY deploy/healthcheck.py ./deploy/
 
-# The bundled maps (laas.map.bundled looks in $LAAS_MAPS first).
-ENV LAAS_MAPS=/app/maps
+# The bundled maps (laas.map.bundled looks in $LAAS_MAPS first), and numba's cache of
+# the engine's compiled arithmetic (laas.engine.jit), which site-packages, owned by root,
+# cannot hold for the user the image runs as.
+ENV LAAS_MAPS=/app/maps \
+    NUMBA_CACHE_DIR=/app/numba-cache
 
 RUN useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin laas
+# The compiled arithmetic built once, here, so no container compiles it (some seconds)
+# before its worker's first fix; the cache stays writable by the user.
+RUN python -m laas.engine.warm && chown -R laas /app/numba-cache
 USER laas
 
 ENV LAAS_MAP=/app/maps/messe-hamburg.geojson

@@ -173,3 +173,20 @@ def test_the_carry_of_a_lane_table(area: common_error.CommonError) -> None:
     num, den = compiled[0]
     np.testing.assert_allclose(den.sum(), 1.0)  # every window cell's weight, once
     np.testing.assert_allclose(num.sum(), (alpha[idx_old] * w[..., None]).sum())
+
+
+def test_a_function_whose_cache_cannot_be_written_is_compiled_all_the_same(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Numba finds no place for the cache of a function without a source file (as of a
+    read-only install without a writable home): it is compiled uncached, with a warning."""
+    from laas.engine import jit
+
+    space: dict[str, Any] = {}
+    exec(compile("def twice(x):\n    return 2.0 * x\n", "<no file>", "exec"), space)
+    with caplog.at_level("WARNING", logger="laas.engine.jit"):
+        twice = jit.jit(space["twice"])
+    assert twice(2.5) == 5.0
+    assert twice.signatures  # compiled, not the plain function
+    assert "NUMBA_CACHE_DIR" in caplog.text
+    jit.COMPILED.remove(twice)  # not one of the engine's

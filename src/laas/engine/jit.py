@@ -3,14 +3,18 @@
 The engine's per-fix arithmetic works on arrays of a handful of elements (a 4 x 4
 covariance, a user's few lanes over some dozens of u-cells), where each numpy call costs
 more than the arithmetic it does. The functions decorated here are compiled to machine
-code on first use and kept in `__pycache__` beside their module (numba's cache), so a
-process after the first loads them in milliseconds. Each stays plain Python that numba
-also runs as it is: `LAAS_NO_JIT=1` runs them uncompiled (numba's own
-`NUMBA_DISABLE_JIT`), slowly, for a debugger or a coverage run.
+code on first use and kept in numba's cache: `__pycache__` beside their module, or
+`NUMBA_CACHE_DIR` when set (the container image sets it). A process after the first
+loads them in milliseconds. Where no cache can be written (a read-only install and no
+writable home), they are compiled anew in every process, and a warning says how to give
+them a cache. Each stays plain Python that numba also runs as it is: `LAAS_NO_JIT=1` runs
+them uncompiled (numba's own `NUMBA_DISABLE_JIT`), slowly, for a debugger or a coverage
+run.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
@@ -18,6 +22,8 @@ from typing import Any, TypeVar, cast
 import numba
 
 __all__ = ["COMPILED", "jit"]
+
+log = logging.getLogger(__name__)
 
 F = TypeVar("F", bound=Callable[..., object])
 
@@ -32,6 +38,15 @@ def jit(fn: F) -> F:
     (inf or NaN, no exception); `fn` itself with LAAS_NO_JIT=1."""
     if _DISABLED:
         return fn
-    compiled = numba.njit(cache=True, error_model="numpy")(fn)
+    try:
+        compiled = numba.njit(cache=True, error_model="numpy")(fn)
+    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
+        log.warning(
+            "%s is compiled anew in every process (%s): set NUMBA_CACHE_DIR to a writable "
+            "folder to keep it",
+            fn.__qualname__,
+            exc,
+        )
+        compiled = numba.njit(error_model="numpy")(fn)
     COMPILED.append(compiled)
     return cast(F, compiled)

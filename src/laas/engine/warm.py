@@ -24,7 +24,7 @@ from laas.config import EngineConfig
 from laas.engine.engine import Engine
 from laas.engine.jit import COMPILED
 from laas.engine.stacked import _evidence_cells
-from laas.engine.tracking import multipath_weight
+from laas.engine.tracking import _product, multipath_weight
 from laas.map.hdmap import HdMap, Segment
 from laas.models import GpsMeasurement
 
@@ -62,8 +62,8 @@ def warm_up(hdmap: HdMap | None = None, config: EngineConfig | None = None) -> f
         for k in range(0, len(fixes), _USERS):  # every user's fix of a second together
             many.process_many(fixes[k : k + _USERS])
     # what the crowd may not reach: the evidence of few cells (a settled posterior's
-    # narrow span) and the multipath weight on its own (inside the Kalman step it is
-    # compiled as part of `_kalman`)
+    # narrow span), and the multipath weight and the 4 x 4 product on their own (inside
+    # the Kalman step they are compiled as part of `_kalman`)
     cube, row = np.ones((1, 2, 2)), np.ones(1)
     _evidence_cells(
         cube,
@@ -80,6 +80,8 @@ def warm_up(hdmap: HdMap | None = None, config: EngineConfig | None = None) -> f
         3.0,
     )
     multipath_weight(1.0, 0.0, 1.0, 0.0, 0.0, 0.05)
+    square = np.eye(4)
+    _product(square, square, np.empty((4, 4)), True)
     missing = [f.__name__ for f in COMPILED if not f.signatures]
     if missing:
         log.warning("laas.engine.warm: compiled on the first fix instead: %s", ", ".join(missing))

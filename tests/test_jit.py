@@ -123,14 +123,26 @@ def test_the_stacked_kernels() -> None:
     _close(compiled[0], plain[0])
 
 
-def test_the_warm_up_builds_every_compiled_function() -> None:
-    """`warm_up` leaves nothing to compile on a worker's first fix."""
-    from laas.engine.jit import COMPILED
-    from laas.engine.warm import warm_up
+@pytest.mark.parametrize("mode", ["default", "paper"])
+def test_the_warm_up_builds_every_compiled_function(mode: str) -> None:
+    """`warm_up` leaves nothing to compile on a worker's first fix, whatever its mode
+    (in a fresh interpreter: in this one other tests have built them already)."""
+    import subprocess
+    import sys
 
-    warm_up()
-    assert COMPILED
-    assert [f.__name__ for f in COMPILED if not f.signatures] == []
+    script = (
+        "from laas.config import EngineConfig\n"
+        "from laas.engine.jit import COMPILED\n"
+        "from laas.engine.warm import warm_up\n"
+        f"warm_up(config=EngineConfig(mode={mode!r}))\n"
+        "print(len(COMPILED), [f.__name__ for f in COMPILED if not f.signatures])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True
+    )
+    count, missing = out.stdout.split(" ", 1)
+    assert int(count) >= 10
+    assert missing.strip() == "[]", out.stderr
 
 
 def test_the_prediction() -> None:

@@ -4,10 +4,12 @@ The compiled functions are built on their first call: some seconds on a fresh in
 (then kept in numba's cache), some tenths of a second in each new process after. A
 worker that did this on its first real fix would answer it seconds late, so it first
 drives a short synthetic crowd through an engine of its own: three users driving one
-road element of the map for a few seconds, one fix at a time and in a batch, which takes
-every compiled function down the paths that live fixes take. The engine is then thrown
-away; nothing of it reaches the worker's own. The users cross from the element into
-the next, so a lane table is carried over too (`cooperative._reproject`).
+road element of the map for 20 simulated seconds, one fix at a time and in a batch,
+which takes every compiled function down the paths that live fixes take. The engine is
+then thrown away; nothing of it reaches the worker's own. The users cross from the
+element into the next, so a lane table is carried over too (`cooperative._reproject`).
+A paper-mode worker's crowd goes through a default-mode engine as well: its own uses
+only the Kalman step, and the warm-up builds every function either way.
 
     .venv/bin/python -m laas.engine.warm     # fill the cache (`scripts/test` does)
 """
@@ -54,11 +56,14 @@ def warm_up(hdmap: HdMap | None = None, config: EngineConfig | None = None) -> f
     segment = max(hdmap.segments.values(), key=rank)
     following = next((hdmap.segments[e] for e in segment.successors if e in hdmap.segments), None)
     fixes = _fixes(hdmap, segment, following)
-    if fixes:
-        one = Engine(hdmap, config)
-        for fix in fixes[:_SECONDS]:  # one user, one fix at a time
+    configs = [config or EngineConfig()]
+    if configs[0].mode != "default":
+        configs.append(EngineConfig())
+    for c in configs if fixes else []:
+        one = Engine(hdmap, c)
+        for fix in fixes[:_SECONDS]:  # one fix at a time
             one.process(*fix)
-        many = Engine(hdmap, config)
+        many = Engine(hdmap, c)
         for k in range(0, len(fixes), _USERS):  # every user's fix of a second together
             many.process_many(fixes[k : k + _USERS])
     # what the crowd may not reach: the evidence of few cells (a settled posterior's

@@ -133,10 +133,6 @@ class UGrid:
         self.lo = -half
         self.values = self.lo + step * np.arange(self.size)
 
-    def index(self, u: np.ndarray) -> np.ndarray:
-        """The cell of each u (clipped to the grid)."""
-        return np.clip(((u - self.lo) / self.step + 0.5).astype(np.intp), 0, self.size - 1)
-
 
 class CommonError:
     """The common error of one area: a grid posterior with mean b (2,) and covariance P.
@@ -831,8 +827,9 @@ def _held(
 def _u_cells(
     ae: np.ndarray, an: np.ndarray, n_e: float, n_n: float, lo: float, step: float, size: int
 ) -> tuple[np.ndarray, int, int]:
-    """The u-grid cell of n . b for each window cell (`UGrid.index`), and the first and
-    one past the last cell they take."""
+    """The u-grid cell of n . b for each window cell, k = (u - lo) / step + 1/2 rounded
+    toward zero and clipped to the grid's `size` cells, and the first and one past the
+    last cell they take."""
     idx = np.empty((ae.size, an.size), dtype=np.intp)
     first, last = size, 0
     for i in range(ae.size):

@@ -185,8 +185,7 @@ class Engine:
         q = positions - np.array([b for b, _ in corrections])
         segments = self.map.locate_many(q, c.max_map_distance)
         work: list[tuple[str, Track, Segment, float]] = []
-        at: list[int] = []
-        k_of = {k: j for j, k in enumerate(live)}  # a fix's row of q
+        at: list[tuple[int, int]] = []  # (the fix, its row of q) of each entry of work
         for j, k in enumerate(live):
             user, measurement = fixes[k]
             track = cast(Track, tracks[k])
@@ -200,11 +199,11 @@ class Engine:
                 out[k] = self._off_map(measurement, q[j], track.position_cov + corrections[j][1])
                 continue
             work.append((user, track, segment, ts[j]))
-            at.append(k)
-        for k, (_, track, segment, _), placement in zip(
+            at.append((k, j))
+        for (k, j), (_, track, segment, _), placement in zip(
             at, work, self._lanes.step_many(work), strict=True
         ):
-            out[k] = self._answer(fixes[k][1], segment, placement, track, q[k_of[k]])
+            out[k] = self._answer(fixes[k][1], segment, placement, track, q[j])
         return out
 
     def _plausible(

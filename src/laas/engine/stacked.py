@@ -33,8 +33,8 @@ __all__ = ["evidence", "lanes_and_conditionals", "pad"]
 _K = 1.0 / math.sqrt(2.0 * math.pi)
 # cells x lanes up to which `evidence` is computed cell by cell: below it numpy's fixed
 # cost per call (some 15 us) outweighs its vectorised exponentials (about 20 ns a cell
-# against 40), measured on the development machine (`tests/test_stacked.py` prints nothing;
-# `laas bench --worker-only` shows the effect)
+# against 40), measured on the development machine (`scripts/engine_bench.py` shows the
+# effect one at a time and in batches)
 _FEW_CELLS = 1024
 
 

@@ -228,28 +228,33 @@ class Track:
 
 
 def measurement_noise(config: EngineConfig, fixes: Sequence[Fix]) -> np.ndarray:
-    """R of each fix, (B, 4, 4): sigma_pos^2 on the position (the receiver's own accuracy
-    if it gives one); on the velocity, speed noise along the heading and across it the
-    heading's error s sigma_h plus the speed noise again, since a GNSS course over ground
-    comes from a velocity vector whose every component carries it (so a slow user's
-    heading is worth little):  R_v = sigma_v^2 I + s^2 sigma_h^2 n n',  n = (cos h, -sin h)."""
+    """R of each fix, (B, 4, 4) (`_noise`)."""
     sigma_h = math.radians(config.sigma_heading)
     v2 = config.sigma_vel**2 + _MIN_VELOCITY_VAR
-    rows = []
-    for fix in fixes:
-        n_e, n_n = math.cos(fix.heading), -math.sin(fix.heading)
-        h2 = (fix.speed * sigma_h) ** 2
+    r = np.empty((len(fixes), 4, 4))
+    for i, fix in enumerate(fixes):
         p2 = (fix.accuracy if fix.accuracy is not None else config.sigma_pos) ** 2
-        en = h2 * n_e * n_n
-        # fmt: off
-        rows.append((
-            p2, 0.0, 0.0, 0.0,
-            0.0, p2, 0.0, 0.0,
-            0.0, 0.0, v2 + h2 * n_e * n_e, en,
-            0.0, 0.0, en, v2 + h2 * n_n * n_n,
-        ))
-        # fmt: on
-    return np.array(rows).reshape(-1, 4, 4)
+        _noise(r[i], fix.speed, fix.heading, p2, v2, sigma_h)
+    return r
+
+
+@jit
+def _noise(
+    r: np.ndarray, speed: float, heading: float, p2: float, v2: float, sigma_h: float
+) -> None:
+    """R of one fix, into r (4, 4): p2 = sigma_pos^2 on the position (the receiver's own
+    accuracy if it gives one); on the velocity, v2 = sigma_v^2 (with its floor) along the
+    heading and across it the heading's error s sigma_h plus the speed noise again, since
+    a GNSS course over ground comes from a velocity vector whose every component carries
+    it (so a slow user's heading is worth little):
+    R_v = sigma_v^2 I + s^2 sigma_h^2 n n',  n = (cos h, -sin h)."""
+    n_e, n_n = math.cos(heading), -math.sin(heading)
+    h2 = (speed * sigma_h) ** 2
+    r[:, :] = 0.0
+    r[0, 0] = r[1, 1] = p2
+    r[2, 2] = v2 + h2 * n_e * n_e
+    r[2, 3] = r[3, 2] = h2 * n_e * n_n
+    r[3, 3] = v2 + h2 * n_n * n_n
 
 
 def kalman_steps(tracks: list[Track], fixes: list[Fix]) -> None:
@@ -312,7 +317,7 @@ def _kalman(
     predict   x = F x,  P = F P F' + Q,  F = [[I, dt I], [0, I]], and the white
               acceleration of variance q gives (filterpy's Q_discrete_white_noise(dim=2,
               block_size=2))  Q = q [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]
-    measure   z = (e, n, s sin h, s cos h), R = `measurement_noise`
+    measure   z = (e, n, s sin h, s cos h), R = `_noise`
     weigh     with share = pi > 0, rho (`multipath_weight`): a disagreement begins
               with a fix of rho > 1/2 and ends with one of rho < 0.1; one that lasts
               `DOUBT_SECONDS` doubts the track, P's position variance raised by s_mp^2
@@ -324,7 +329,7 @@ def _kalman(
     """
     wide = MULTIPATH_SIGMA**2
     z = np.empty(4)
-    r = np.zeros((4, 4))
+    r = np.empty((4, 4))
     s = np.empty((4, 4))
     k = np.empty((4, 4))
     a = np.empty((4, 4))
@@ -351,22 +356,17 @@ def _kalman(
         pi[3, 1] += q3
         pi[2, 2] += q2
         pi[3, 3] += q2
-        # the fix: z and R (`measurement_noise`)
-        speed, heading, p2 = rows[i, 4], rows[i, 5], rows[i, 6]
+        # the fix: z and R (`_noise`)
+        speed, heading = rows[i, 4], rows[i, 5]
         z[0], z[1] = rows[i, 2], rows[i, 3]
         z[2], z[3] = speed * math.sin(heading), speed * math.cos(heading)
-        n_e, n_n = math.cos(heading), -math.sin(heading)
-        h2 = (speed * sigma_h) ** 2
-        r[:, :] = 0.0
-        r[0, 0] = r[1, 1] = p2
-        r[2, 2] = v2 + h2 * n_e * n_e
-        r[2, 3] = r[3, 2] = h2 * n_e * n_n
-        r[3, 3] = v2 + h2 * n_n * n_n
+        _noise(r, speed, heading, rows[i, 6], v2, sigma_h)
         if share > 0.0:
             y0, y1 = z[0] - xi[0], z[1] - xi[1]
             s00, s01, s11 = pi[0, 0] + r[0, 0], pi[0, 1] + r[0, 1], pi[1, 1] + r[1, 1]
             rho = multipath_weight(s00, s01, s11, y0, y1, share)
-            # `Track._doubt`: a disagreement begins with rho > 1/2, ends with rho < _AGREES
+            # the doubt (module docstring): a disagreement begins with rho > 1/2 and ends
+            # with rho < _AGREES; one that lasted DOUBT_SECONDS doubts the track
             doubt = False
             began = rows[i, 7]
             if rho < _AGREES or (math.isnan(began) and rho <= 0.5):
